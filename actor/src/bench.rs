@@ -1,0 +1,171 @@
+//! `actor bench`: how fast the environment steps and renders.
+
+use rayon::prelude::*;
+use serde::Serialize;
+use std::time::{Duration, Instant};
+use tweezer_gym::{Action, Env, EnvConfig, Frame, Outcome, Renderer, UniformRandom, VecEnv};
+
+/// Benchmark figures; rates are medians over repetitions.
+#[derive(Debug, Serialize)]
+pub struct BenchReport {
+    /// One environment on one core: random actions, resets and an
+    /// up-to-date rendered frame after every step.
+    pub env_steps_per_sec_1core: f64,
+    /// Vectorised environments on every core, same work per step.
+    pub env_steps_per_sec_all_cores: f64,
+    /// Median time to render one observation into a cleared image, µs.
+    pub render_us_median: f64,
+    /// Median time to bring an image up to date from the previous step, µs.
+    pub render_incremental_us_median: f64,
+    /// Threads used for the all-cores figure.
+    pub threads: usize,
+    /// Environments stepped together for the all-cores figure.
+    pub vec_envs: usize,
+    /// Image resolution (width, height).
+    pub resolution: [u32; 2],
+    /// Repetitions each rate is the median of.
+    pub repetitions: usize,
+}
+
+fn median(mut values: Vec<f64>) -> f64 {
+    values.sort_by(f64::total_cmp);
+    let n = values.len();
+    if n % 2 == 1 {
+        values[n / 2]
+    } else {
+        0.5 * (values[n / 2 - 1] + values[n / 2])
+    }
+}
+
+/// Steps per second of one environment on this thread, over about `span`.
+fn one_core(config: &EnvConfig, renderer: &Renderer, span: Duration, seed: u64) -> f64 {
+    let mut env = Env::new(config.clone());
+    let mut frame = Frame::<u8>::new(renderer);
+    let mut policy = UniformRandom::new(seed);
+    let mut episode = seed << 32;
+    env.reset(episode);
+    let start = Instant::now();
+    let mut steps = 0u64;
+    while start.elapsed() < span {
+        for _ in 0..1000 {
+            if env.outcome() != Outcome::Running {
+                episode += 1;
+                env.reset(episode);
+            }
+            env.step(policy.sample()).expect("running");
+            frame
+                .update(renderer, &env.observation().centres)
+                .expect("frame made for this renderer");
+        }
+        steps += 1000;
+    }
+    steps as f64 / start.elapsed().as_secs_f64()
+}
+
+/// Steps per second of `n` vectorised environments on every core.
+fn all_cores(config: &EnvConfig, renderer: &Renderer, n: usize, span: Duration, seed: u64) -> f64 {
+    let mut envs = VecEnv::new(config, n, seed);
+    let mut frames: Vec<Frame<u8>> = (0..n).map(|_| Frame::new(renderer)).collect();
+    let mut policy = UniformRandom::new(seed);
+    let mut actions = vec![Action::ZERO; n];
+    let start = Instant::now();
+    let mut steps = 0u64;
+    while start.elapsed() < span {
+        for _ in 0..50 {
+            for a in &mut actions {
+                *a = policy.sample();
+            }
+            envs.step(&actions).expect("one action per environment");
+            frames
+                .par_iter_mut()
+                .zip(envs.slots().par_iter())
+                .for_each(|(frame, slot)| {
+                    frame
+                        .update(renderer, &slot.observation().centres)
+                        .expect("frame made for this renderer");
+                });
+        }
+        steps += 50 * n as u64;
+    }
+    steps as f64 / start.elapsed().as_secs_f64()
+}
+
+/// Median full and incremental render times over the observations of a few
+/// random-action episodes.
+fn render_times(config: &EnvConfig, renderer: &Renderer) -> (f64, f64) {
+    let mut env = Env::new(config.clone());
+    let mut policy = UniformRandom::new(1);
+    let mut observations = Vec::new();
+    let mut seed = 0;
+    while observations.len() < 5000 {
+        env.reset(seed);
+        seed += 1;
+        while env.outcome() == Outcome::Running && observations.len() < 5000 {
+            observations.push(env.observation().centres.clone());
+            env.step(policy.sample()).expect("running");
+        }
+    }
+    let mut image = vec![0u8; renderer.pixels()];
+    let mut frame = Frame::<u8>::new(renderer);
+    let mut full = Vec::with_capacity(observations.len());
+    let mut incremental = Vec::with_capacity(observations.len());
+    for centres in &observations {
+        let t = Instant::now();
+        renderer
+            .render(centres, &mut image)
+            .expect("sized for the renderer");
+        full.push(t.elapsed().as_secs_f64() * 1e6);
+        let t = Instant::now();
+        frame
+            .update(renderer, centres)
+            .expect("sized for the renderer");
+        incremental.push(t.elapsed().as_secs_f64() * 1e6);
+    }
+    std::hint::black_box((&image, frame.pixels()));
+    (median(full), median(incremental))
+}
+
+/// Runs every benchmark, each rate `repetitions` times for about `span`.
+pub fn run(config: &EnvConfig, span: Duration, repetitions: usize) -> BenchReport {
+    let renderer = Renderer::for_config(config);
+    let repetitions = repetitions.max(1);
+    let threads = rayon::current_num_threads();
+    let vec_envs = 64 * threads;
+    let single: Vec<f64> = (0..repetitions)
+        .map(|r| one_core(config, &renderer, span, r as u64))
+        .collect();
+    let parallel: Vec<f64> = (0..repetitions)
+        .map(|r| all_cores(config, &renderer, vec_envs, span, r as u64))
+        .collect();
+    let (render_us_median, render_incremental_us_median) = render_times(config, &renderer);
+    BenchReport {
+        env_steps_per_sec_1core: median(single),
+        env_steps_per_sec_all_cores: median(parallel),
+        render_us_median,
+        render_incremental_us_median,
+        threads,
+        vec_envs,
+        resolution: [config.image.width, config.image.height],
+        repetitions,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn median_of_odd_and_even_counts() {
+        assert_eq!(median(vec![3.0, 1.0, 2.0]), 2.0);
+        assert_eq!(median(vec![4.0, 1.0, 2.0, 3.0]), 2.5);
+    }
+
+    #[test]
+    fn a_short_run_reports_positive_rates() {
+        let report = run(&EnvConfig::default(), Duration::from_millis(20), 1);
+        assert!(report.env_steps_per_sec_1core > 0.0);
+        assert!(report.env_steps_per_sec_all_cores > 0.0);
+        assert!(report.render_us_median > 0.0);
+        assert_eq!(report.resolution, [320, 256]);
+    }
+}

@@ -1,0 +1,146 @@
+//! The actor process. Today: evaluation of baseline policies, the
+//! environment benchmark and the demo; streaming to the learner comes with
+//! the actor issue.
+
+mod bench;
+mod demo;
+
+use anyhow::bail;
+use clap::{Parser, Subcommand};
+use std::path::PathBuf;
+use std::time::Duration;
+use tweezer_gym::{EvalSummary, Greedy, Policy, ProcessConfig, Seeds, UniformRandom, evaluate};
+
+/// Tweezer RL actor: steps virtual optical-tweezers environments.
+#[derive(Parser)]
+#[command(version, about)]
+struct Cli {
+    /// TOML config file (an `[env]` table overrides SPEC defaults).
+    #[arg(long, global = true)]
+    config: Option<PathBuf>,
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Subcommand)]
+enum Command {
+    /// Evaluate a policy over a list of episode seeds.
+    Eval {
+        /// `greedy` (straight at the target) or `random` (uniform actions).
+        #[arg(long, default_value = "greedy")]
+        policy: String,
+        /// Episode seeds: `0..1000`, `5..=9`, `1,2,3`.
+        #[arg(long, default_value = "0..1000")]
+        seeds: Seeds,
+        /// Episodes run side by side (the policy's batch).
+        #[arg(long, default_value_t = 64)]
+        batch: usize,
+        /// Print one JSON object instead of a table.
+        #[arg(long)]
+        json: bool,
+    },
+    /// Measure environment and renderer speed.
+    Bench {
+        /// Seconds per repetition of each rate.
+        #[arg(long, default_value_t = 1.0)]
+        seconds: f64,
+        /// Repetitions; rates are their median.
+        #[arg(long, default_value_t = 5)]
+        repetitions: usize,
+        /// Print one JSON object instead of a table.
+        #[arg(long)]
+        json: bool,
+    },
+    /// Print the effective configuration (the file over SPEC defaults) as TOML.
+    Config,
+    /// Run the greedy baseline on a few seeds and draw the paper's Figs. 5 and 6.
+    Demo {
+        /// Episode seeds.
+        #[arg(long, default_value = "0..4")]
+        seeds: Seeds,
+        /// Directory the pictures go to.
+        #[arg(long, default_value = "demo-out")]
+        out: PathBuf,
+    },
+}
+
+fn policy_named(name: &str) -> anyhow::Result<Box<dyn Policy>> {
+    match name {
+        "greedy" => Ok(Box::new(Greedy)),
+        "random" => Ok(Box::new(UniformRandom::new(0))),
+        other => bail!(
+            "unknown policy `{other}`: use `greedy` or `random` (trained snapshots are not loadable yet)"
+        ),
+    }
+}
+
+fn print_summary(summary: &EvalSummary, json: bool) -> anyhow::Result<()> {
+    if json {
+        println!("{}", serde_json::to_string(summary)?);
+    } else {
+        println!("episodes        {}", summary.episodes);
+        println!("success rate    {:.3}", summary.success_rate);
+        println!("collision rate  {:.3}", summary.collision_rate);
+        println!("timeout rate    {:.3}", summary.timeout_rate);
+        println!("mean return     {:.1}", summary.mean_return);
+        println!("mean steps      {:.1}", summary.mean_steps);
+    }
+    Ok(())
+}
+
+fn main() -> anyhow::Result<()> {
+    let cli = Cli::parse();
+    let config = ProcessConfig::load(cli.config.as_deref())?;
+    match cli.command {
+        Command::Eval {
+            policy,
+            seeds,
+            batch,
+            json,
+        } => {
+            let mut policy = policy_named(&policy)?;
+            let episodes = evaluate(&config.env, policy.as_mut(), &seeds.0, batch);
+            print_summary(&EvalSummary::of(&episodes), json)?;
+        }
+        Command::Bench {
+            seconds,
+            repetitions,
+            json,
+        } => {
+            if !(seconds.is_finite() && seconds > 0.0) {
+                bail!("--seconds must be a positive number, got {seconds}");
+            }
+            let report = bench::run(&config.env, Duration::from_secs_f64(seconds), repetitions);
+            if json {
+                println!("{}", serde_json::to_string(&report)?);
+            } else {
+                println!(
+                    "env steps/s, 1 core      {:.0}",
+                    report.env_steps_per_sec_1core
+                );
+                println!(
+                    "env steps/s, {} threads   {:.0} ({} envs)",
+                    report.threads, report.env_steps_per_sec_all_cores, report.vec_envs
+                );
+                println!("render, full (median)    {:.2} µs", report.render_us_median);
+                println!(
+                    "render, incremental      {:.2} µs",
+                    report.render_incremental_us_median
+                );
+                println!(
+                    "resolution {}x{}, median of {} repetitions",
+                    report.resolution[0], report.resolution[1], report.repetitions
+                );
+            }
+        }
+        Command::Config => print!("{}", config.to_toml()),
+        Command::Demo { seeds, out } => {
+            let (written, summary) = demo::run(&config.env, &seeds.0, &out)?;
+            for path in &written {
+                println!("wrote {}", path.display());
+            }
+            print_summary(&summary, false)?;
+        }
+    }
+    Ok(())
+}

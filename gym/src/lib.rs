@@ -1,0 +1,38 @@
+//! The virtual optical-tweezers environment of Praeger et al., its renderer,
+//! vectorised stepping, baseline policies and evaluation.
+//!
+//! The canonical observation is the list of sphere centres in the field of
+//! view plus the target vector ([`Observation`]); [`Renderer`] turns it into
+//! the binary image a network sees, the same way in every process.
+
+mod action;
+mod config;
+mod env;
+mod eval;
+mod num;
+mod observation;
+mod policy;
+mod render;
+mod rng;
+mod seeds;
+mod spheres;
+mod step_record;
+mod trajectory;
+mod vec_env;
+mod watch;
+
+pub use action::{Action, ActionError};
+pub use config::{
+    ConfigError, EnvConfig, ImageConfig, ProcessConfig, RewardComponent, RewardConfig, read_toml,
+};
+pub use env::{Env, EpisodeOver, Layout, Outcome, RewardParts, StepResult, Target};
+pub use eval::{EvalSummary, evaluate};
+pub use observation::{Observation, ObservationBounds, ObservationError};
+pub use policy::{Greedy, Policy, UniformRandom};
+pub use render::{Frame, Pixel, Renderer, SizeMismatch};
+pub use rng::SplitMix64;
+pub use seeds::{Seeds, SeedsError};
+pub use spheres::{FreeSphere, Motion};
+pub use step_record::{EndKind, EpisodeEnd, StepRecord};
+pub use trajectory::{Trajectory, record};
+pub use vec_env::{ActionCountMismatch, EpisodeStats, Slot, VecEnv};

@@ -1,0 +1,56 @@
+//! One environment step as an actor reports it to the learner.
+
+use crate::action::Action;
+use crate::observation::Observation;
+
+/// One step of one environment. The transition of step `t` is
+/// (observation, action, reward, next observation), where the next
+/// observation is that of step `t + 1` of the same environment and episode,
+/// or the final observation carried by `end`.
+#[derive(Clone, Debug, PartialEq)]
+pub struct StepRecord {
+    /// Index of the environment within its actor.
+    pub env: u32,
+    /// The episode's seed.
+    pub episode: u64,
+    /// Step index within the episode, from 0.
+    pub t: u32,
+    /// The observation the action responded to.
+    pub observation: Observation,
+    /// The action taken.
+    pub action: Action,
+    /// The step's reward.
+    pub reward: f32,
+    /// Set when this step ended the episode.
+    pub end: Option<EpisodeEnd>,
+}
+
+/// How a step ended its episode.
+#[derive(Clone, Debug, PartialEq)]
+pub struct EpisodeEnd {
+    /// Terminated (success or collision) or truncated (time limit).
+    pub kind: EndKind,
+    /// The observation after the step.
+    pub final_observation: Observation,
+}
+
+/// Gymnasium's two ways for an episode to end.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum EndKind {
+    /// Success or collision: the episode's value ends here.
+    Terminated,
+    /// The time limit: the episode was cut short, its value goes on.
+    Truncated,
+}
+
+impl StepRecord {
+    /// The step ended the episode in success or collision.
+    pub fn terminated(&self) -> bool {
+        matches!(&self.end, Some(e) if e.kind == EndKind::Terminated)
+    }
+
+    /// The step hit the time limit.
+    pub fn truncated(&self) -> bool {
+        matches!(&self.end, Some(e) if e.kind == EndKind::Truncated)
+    }
+}

@@ -1,0 +1,20 @@
+//! The gRPC wire schema of Tweezer RL and the conversions between wire and
+//! domain types.
+//!
+//! `pb` holds the types generated from `proto/tweezer/v1/*.proto` (the public
+//! contract, readable by any gRPC stack). Nothing below a service's edge
+//! should use them: convert with the functions here, which validate every
+//! field and name the one that is wrong.
+
+mod convert;
+
+pub use convert::{
+    WireError, action_from_wire, action_to_wire, observation_from_wire, observation_to_wire,
+    outcome_to_wire, step_batch_from_wire, step_from_wire, step_to_wire,
+};
+
+/// Types and service stubs generated from the proto files.
+#[allow(missing_docs, clippy::all, clippy::pedantic)]
+pub mod pb {
+    tonic::include_proto!("tweezer.v1");
+}
