@@ -9,15 +9,14 @@ use anyhow::bail;
 use clap::{Parser, Subcommand};
 use std::path::PathBuf;
 use std::time::Duration;
-use tweezer_gym::{EvalSummary, Greedy, Policy, ProcessConfig, Seeds, UniformRandom, evaluate};
+use tweezer_gym::{ConfigArgs, EvalSummary, Greedy, Policy, Seeds, UniformRandom, evaluate};
 
 /// Tweezer RL actor: steps virtual optical-tweezers environments.
 #[derive(Parser)]
 #[command(version, about)]
 struct Cli {
-    /// TOML config file (an `[env]` table overrides SPEC defaults).
-    #[arg(long, global = true)]
-    config: Option<PathBuf>,
+    #[command(flatten)]
+    config: ConfigArgs,
     #[command(subcommand)]
     command: Command,
 }
@@ -90,7 +89,7 @@ fn print_summary(summary: &EvalSummary, json: bool) -> anyhow::Result<()> {
 
 fn main() -> anyhow::Result<()> {
     let cli = Cli::parse();
-    let config = ProcessConfig::load(cli.config.as_deref())?;
+    let config = cli.config.load()?;
     match cli.command {
         Command::Eval {
             policy,

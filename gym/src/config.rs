@@ -214,6 +214,23 @@ impl ProcessConfig {
     }
 }
 
+/// The `--config FILE` argument every process binary takes.
+#[cfg(feature = "cli")]
+#[derive(Clone, Debug, Default, clap::Args)]
+pub struct ConfigArgs {
+    /// TOML config file (an `[env]` table overrides SPEC defaults).
+    #[arg(long = "config", global = true, value_name = "FILE")]
+    pub path: Option<std::path::PathBuf>,
+}
+
+#[cfg(feature = "cli")]
+impl ConfigArgs {
+    /// The defaults, or the validated contents of the file.
+    pub fn load(&self) -> Result<ProcessConfig, ConfigError> {
+        ProcessConfig::load(self.path.as_deref())
+    }
+}
+
 /// Reads and parses a TOML file into any configuration type; errors name
 /// the file. Validation is the caller's.
 pub fn read_toml<T: DeserializeOwned>(path: &Path) -> Result<T, ConfigError> {

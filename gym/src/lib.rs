@@ -22,6 +22,8 @@ mod vec_env;
 mod watch;
 
 pub use action::{Action, ActionError};
+#[cfg(feature = "cli")]
+pub use config::ConfigArgs;
 pub use config::{
     ConfigError, EnvConfig, ImageConfig, ProcessConfig, RewardComponent, RewardConfig, read_toml,
 };

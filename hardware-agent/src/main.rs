@@ -3,8 +3,7 @@
 //! reads and checks the configuration the whole run shares.
 
 use clap::{Parser, Subcommand};
-use std::path::PathBuf;
-use tweezer_gym::ProcessConfig;
+use tweezer_gym::ConfigArgs;
 
 /// Tweezer RL hardware agent. Stage control, segmentation and the gRPC
 /// service are not built yet; `config` checks a config file and prints what
@@ -12,9 +11,8 @@ use tweezer_gym::ProcessConfig;
 #[derive(Parser)]
 #[command(version, about)]
 struct Cli {
-    /// TOML config file (an `[env]` table overrides SPEC defaults).
-    #[arg(long, global = true)]
-    config: Option<PathBuf>,
+    #[command(flatten)]
+    config: ConfigArgs,
     #[command(subcommand)]
     command: Command,
 }
@@ -27,7 +25,7 @@ enum Command {
 
 fn main() -> anyhow::Result<()> {
     let cli = Cli::parse();
-    let config = ProcessConfig::load(cli.config.as_deref())?;
+    let config = cli.config.load()?;
     match cli.command {
         Command::Config => print!("{}", config.to_toml()),
     }

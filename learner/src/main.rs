@@ -3,17 +3,15 @@
 //! the configuration the whole run shares.
 
 use clap::{Parser, Subcommand};
-use std::path::PathBuf;
-use tweezer_gym::ProcessConfig;
+use tweezer_gym::ConfigArgs;
 
 /// Tweezer RL learner. Replay, TD3 training and the gRPC service are not
 /// built yet; `config` checks a config file and prints what it means.
 #[derive(Parser)]
 #[command(version, about)]
 struct Cli {
-    /// TOML config file (an `[env]` table overrides SPEC defaults).
-    #[arg(long, global = true)]
-    config: Option<PathBuf>,
+    #[command(flatten)]
+    config: ConfigArgs,
     #[command(subcommand)]
     command: Command,
 }
@@ -26,7 +24,7 @@ enum Command {
 
 fn main() -> anyhow::Result<()> {
     let cli = Cli::parse();
-    let config = ProcessConfig::load(cli.config.as_deref())?;
+    let config = cli.config.load()?;
     match cli.command {
         Command::Config => print!("{}", config.to_toml()),
     }
