@@ -200,8 +200,25 @@ impl Renderer {
         while self.covers(centre, j1 + 1, mid) {
             j1 += 1;
         }
-        self.walk(centre, mid, -1, (j0, j1), &mut emit);
-        self.walk(centre, mid + 1, 1, (j0, j1), &mut emit);
+        // Every row's run lies within the middle row's: tabulate dx² over it
+        // once (the same products `covers` forms, so the same bits).
+        let dx2 = |j: i64| {
+            let dx = self.columns[(j + self.pad) as usize] - x;
+            dx * dx
+        };
+        let width = (j1 - j0 + 1).max(0) as usize;
+        if width <= DX2_TABLE {
+            let mut table = [0.0; DX2_TABLE];
+            for (k, entry) in table[..width].iter_mut().enumerate() {
+                *entry = dx2(j0 + k as i64);
+            }
+            let lookup = |j: i64| table[(j - j0) as usize];
+            self.walk(y, mid, -1, (j0, j1), &lookup, &mut emit);
+            self.walk(y, mid + 1, 1, (j0, j1), &lookup, &mut emit);
+        } else {
+            self.walk(y, mid, -1, (j0, j1), &dx2, &mut emit);
+            self.walk(y, mid + 1, 1, (j0, j1), &dx2, &mut emit);
+        }
     }
 
     /// Emits the runs of rows `from`, `from + step`, ... while they are lit
@@ -209,10 +226,11 @@ impl Renderer {
     #[inline]
     fn walk(
         &self,
-        centre: [f64; 2],
+        y: f64,
         from: i64,
         step: i64,
         run: (i64, i64),
+        dx2: &impl Fn(i64) -> f64,
         emit: &mut impl FnMut(Run),
     ) {
         let last_row = self.height as i64 - 1;
@@ -222,12 +240,9 @@ impl Renderer {
         let mut i = from;
         while (step < 0 && i >= 0) || (step > 0 && i <= last_row) {
             // `covers`, with the row's term computed once.
-            let dy = pixel_centre(s, i) - centre[1];
+            let dy = pixel_centre(s, i) - y;
             let dy2 = dy * dy;
-            let inside = |j: i64| {
-                let dx = self.columns[(j + self.pad) as usize] - centre[0];
-                dx * dx + dy2 <= r2
-            };
+            let inside = |j: i64| dx2(j) + dy2 <= r2;
             while a <= b && !inside(a) {
                 a += 1;
             }
@@ -284,6 +299,10 @@ impl Renderer {
         }
     }
 }
+
+/// Widest middle run whose dx² are tabulated on the stack (55 columns is a
+/// 54 px sphere at full resolution).
+const DX2_TABLE: usize = 64;
 
 /// Pixels cleared at once when erasing a short run.
 const ERASE_BLOCK: usize = 16;

@@ -1,7 +1,7 @@
 //! Invariants that hold for any seed and any action sequence.
 
 use proptest::prelude::*;
-use tweezer_gym::{Action, Env, EnvConfig, Outcome};
+use tweezer_gym::{Action, Env, EnvConfig, Outcome, Renderer};
 
 fn actions() -> impl Strategy<Value = Vec<(f32, f32)>> {
     prop::collection::vec((-1.0f32..=1.0, -1.0f32..=1.0), 1..200)
@@ -13,6 +13,8 @@ proptest! {
     #[test]
     fn invariants_hold(seed in any::<u64>(), moves in actions()) {
         let config = EnvConfig::default();
+        let renderer = Renderer::for_config(&config);
+        let mut image = vec![0u8; renderer.pixels()];
         let mut env = Env::new(config.clone());
         env.reset(seed);
         let start = env.trap();
@@ -29,6 +31,10 @@ proptest! {
             prop_assert!(!(result.terminated && result.truncated));
             prop_assert!(result.reward.is_finite());
             let obs = env.observation().clone();
+            // The trapped sphere is always drawn at the image centre.
+            renderer.render(&obs.centres, &mut image).unwrap();
+            prop_assert_eq!(image[128 * 320 + 160], 1);
+            prop_assert_eq!(image[127 * 320 + 159], 1);
             let [vx, vy] = obs.vector;
             prop_assert!(vx.hypot(vy) <= 1.0 + 1e-6);
             // Centres are FOV px relative to a trap at the FOV centre.

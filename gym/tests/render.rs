@@ -61,6 +61,27 @@ fn matches_the_pixel_rule_at_every_resolution() {
 }
 
 #[test]
+fn large_discs_match_the_pixel_rule() {
+    // Wide discs take the renderer's general path (no dx² table).
+    let mut rng = SplitMix64::new(23);
+    for (w, h, radius) in [(1280, 1024, 90.0), (320, 256, 150.0), (160, 128, 300.0)] {
+        let image = ImageConfig {
+            width: w,
+            height: h,
+        };
+        let r = Renderer::new(FOV, image, radius).unwrap();
+        let centres = random_centres(&mut rng, 5);
+        let mut out = vec![0u8; r.pixels()];
+        r.render(&centres, &mut out).unwrap();
+        assert_eq!(
+            out,
+            reference(FOV, image, radius, &centres),
+            "{w}x{h} r={radius}"
+        );
+    }
+}
+
+#[test]
 fn boundary_pixels_are_inclusive() {
     // At 320 x 256 (s = 4), pixel centres lie at 2 + 4k. A sphere at
     // (3, 2) is exactly 27 px from pixel (7, 0)'s centre (30, 2).
