@@ -3,7 +3,9 @@
 use rayon::prelude::*;
 use serde::Serialize;
 use std::time::{Duration, Instant};
-use tweezer_gym::{Action, Env, EnvConfig, Frame, Outcome, Renderer, UniformRandom, VecEnv};
+use tweezer_gym::{
+    Action, ConfigError, Env, EnvConfig, Frame, Outcome, Renderer, UniformRandom, VecEnv,
+};
 
 /// Benchmark figures; rates are medians over repetitions.
 #[derive(Debug, Serialize)]
@@ -38,8 +40,13 @@ fn median(mut values: Vec<f64>) -> f64 {
 }
 
 /// Steps per second of one environment on this thread, over about `span`.
-fn one_core(config: &EnvConfig, renderer: &Renderer, span: Duration, seed: u64) -> f64 {
-    let mut env = Env::new(config.clone());
+fn one_core(
+    config: &EnvConfig,
+    renderer: &Renderer,
+    span: Duration,
+    seed: u64,
+) -> Result<f64, ConfigError> {
+    let mut env = Env::new(config.clone())?;
     let mut frame = Frame::<u8>::new(renderer);
     let mut policy = UniformRandom::new(seed);
     let mut episode = seed << 32;
@@ -59,12 +66,18 @@ fn one_core(config: &EnvConfig, renderer: &Renderer, span: Duration, seed: u64) 
         }
         steps += 1000;
     }
-    steps as f64 / start.elapsed().as_secs_f64()
+    Ok(steps as f64 / start.elapsed().as_secs_f64())
 }
 
 /// Steps per second of `n` vectorised environments on every core.
-fn all_cores(config: &EnvConfig, renderer: &Renderer, n: usize, span: Duration, seed: u64) -> f64 {
-    let mut envs = VecEnv::new(config, n, seed);
+fn all_cores(
+    config: &EnvConfig,
+    renderer: &Renderer,
+    n: usize,
+    span: Duration,
+    seed: u64,
+) -> Result<f64, ConfigError> {
+    let mut envs = VecEnv::new(config, n, seed)?;
     let mut frames: Vec<Frame<u8>> = (0..n).map(|_| Frame::new(renderer)).collect();
     let mut policy = UniformRandom::new(seed);
     let mut actions = vec![Action::ZERO; n];
@@ -87,13 +100,13 @@ fn all_cores(config: &EnvConfig, renderer: &Renderer, n: usize, span: Duration, 
         }
         steps += 50 * n as u64;
     }
-    steps as f64 / start.elapsed().as_secs_f64()
+    Ok(steps as f64 / start.elapsed().as_secs_f64())
 }
 
 /// Median full and incremental render times over the observations of a few
 /// random-action episodes.
-fn render_times(config: &EnvConfig, renderer: &Renderer) -> (f64, f64) {
-    let mut env = Env::new(config.clone());
+fn render_times(config: &EnvConfig, renderer: &Renderer) -> Result<(f64, f64), ConfigError> {
+    let mut env = Env::new(config.clone())?;
     let mut policy = UniformRandom::new(1);
     let mut observations = Vec::new();
     let mut seed = 0;
@@ -122,23 +135,27 @@ fn render_times(config: &EnvConfig, renderer: &Renderer) -> (f64, f64) {
         incremental.push(t.elapsed().as_secs_f64() * 1e6);
     }
     std::hint::black_box((&image, frame.pixels()));
-    (median(full), median(incremental))
+    Ok((median(full), median(incremental)))
 }
 
 /// Runs every benchmark, each rate `repetitions` times for about `span`.
-pub fn run(config: &EnvConfig, span: Duration, repetitions: usize) -> BenchReport {
-    let renderer = Renderer::for_config(config);
+pub fn run(
+    config: &EnvConfig,
+    span: Duration,
+    repetitions: usize,
+) -> Result<BenchReport, ConfigError> {
+    let renderer = Renderer::for_config(config)?;
     let repetitions = repetitions.max(1);
     let threads = rayon::current_num_threads();
     let vec_envs = 64 * threads;
     let single: Vec<f64> = (0..repetitions)
         .map(|r| one_core(config, &renderer, span, r as u64))
-        .collect();
+        .collect::<Result<_, _>>()?;
     let parallel: Vec<f64> = (0..repetitions)
         .map(|r| all_cores(config, &renderer, vec_envs, span, r as u64))
-        .collect();
-    let (render_us_median, render_incremental_us_median) = render_times(config, &renderer);
-    BenchReport {
+        .collect::<Result<_, _>>()?;
+    let (render_us_median, render_incremental_us_median) = render_times(config, &renderer)?;
+    Ok(BenchReport {
         env_steps_per_sec_1core: median(single),
         env_steps_per_sec_all_cores: median(parallel),
         render_us_median,
@@ -147,7 +164,7 @@ pub fn run(config: &EnvConfig, span: Duration, repetitions: usize) -> BenchRepor
         vec_envs,
         resolution: [config.image.width, config.image.height],
         repetitions,
-    }
+    })
 }
 
 #[cfg(test)]
@@ -162,7 +179,7 @@ mod tests {
 
     #[test]
     fn a_short_run_reports_positive_rates() {
-        let report = run(&EnvConfig::default(), Duration::from_millis(20), 1);
+        let report = run(&EnvConfig::default(), Duration::from_millis(20), 1).unwrap();
         assert!(report.env_steps_per_sec_1core > 0.0);
         assert!(report.env_steps_per_sec_all_cores > 0.0);
         assert!(report.render_us_median > 0.0);

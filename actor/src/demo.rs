@@ -20,19 +20,19 @@ pub fn run(
     let mut written = Vec::new();
     let mut episodes = Vec::new();
     for &seed in seeds {
-        let trajectory = record(config, seed, Target::Random, &mut Greedy);
+        let trajectory = record(config, seed, Target::Random, &mut Greedy)?;
         let path = out.join(format!("fig5-seed{seed}.png"));
         tweezer_figures::episode_figure(&trajectory, &path)?;
         written.push(path);
         episodes.push(stats(&trajectory));
     }
     if let Some(&seed) = seeds.first() {
-        let twelve: Vec<Trajectory> = (0..FIG6_TARGETS)
+        let twelve = (0..FIG6_TARGETS)
             .map(|k| {
                 let angle = f64::from(k) * std::f64::consts::TAU / f64::from(FIG6_TARGETS);
                 record(config, seed, Target::Angle(angle), &mut Greedy)
             })
-            .collect();
+            .collect::<Result<Vec<Trajectory>, _>>()?;
         let path = out.join(format!("fig6-seed{seed}.png"));
         tweezer_figures::targets_figure(&twelve, &path)?;
         written.push(path);

@@ -98,7 +98,7 @@ fn main() -> anyhow::Result<()> {
             json,
         } => {
             let mut policy = policy_named(&policy)?;
-            let episodes = evaluate(&config.env, policy.as_mut(), &seeds.0, batch);
+            let episodes = evaluate(&config.env, policy.as_mut(), &seeds.0, batch)?;
             print_summary(&EvalSummary::of(&episodes), json)?;
         }
         Command::Bench {
@@ -109,7 +109,7 @@ fn main() -> anyhow::Result<()> {
             if !(seconds.is_finite() && seconds > 0.0) {
                 bail!("--seconds must be a positive number, got {seconds}");
             }
-            let report = bench::run(&config.env, Duration::from_secs_f64(seconds), repetitions);
+            let report = bench::run(&config.env, Duration::from_secs_f64(seconds), repetitions)?;
             if json {
                 println!("{}", serde_json::to_string(&report)?);
             } else {

@@ -269,7 +269,7 @@ mod tests {
     fn draws_both_figures() {
         let dir = tempfile::tempdir().unwrap();
         let config = EnvConfig::default();
-        let one = record(&config, 3, Target::Random, &mut Greedy);
+        let one = record(&config, 3, Target::Random, &mut Greedy).unwrap();
         episode_figure(&one, &dir.path().join("fig5.png")).unwrap();
         assert!(is_png(&dir.path().join("fig5.png")));
         let twelve: Vec<_> = (0..12)
@@ -280,6 +280,7 @@ mod tests {
                     Target::Angle(f64::from(k) * std::f64::consts::FRAC_PI_6),
                     &mut Greedy,
                 )
+                .unwrap()
             })
             .collect();
         targets_figure(&twelve, &dir.path().join("fig6.png")).unwrap();
@@ -289,7 +290,7 @@ mod tests {
     #[test]
     fn unwritable_paths_are_errors() {
         let config = EnvConfig::default();
-        let one = record(&config, 3, Target::Random, &mut Greedy);
+        let one = record(&config, 3, Target::Random, &mut Greedy).unwrap();
         let err = episode_figure(&one, Path::new("/nonexistent-dir/fig.png")).unwrap_err();
         assert!(
             err.to_string().contains("/nonexistent-dir/fig.png"),

@@ -331,6 +331,14 @@ impl EnvConfig {
                 "must be smaller than start_clearance_px, or episodes can start in a collision",
             ));
         }
+        // Collisions are scored among the spheres the camera can see.
+        let visible = 0.5 * f64::from(self.fov_px[0].min(self.fov_px[1])) + self.sphere_radius_px();
+        if self.collision_radius_px > visible {
+            return Err(invalid(
+                "collision_radius_px",
+                format!("must be at most {visible} px, so that a collision happens in view"),
+            ));
+        }
         if self.time_limit == 0 {
             return Err(invalid("time_limit", "must be at least 1 step"));
         }
@@ -429,7 +437,11 @@ mod tests {
 
     #[test]
     fn errors_name_the_field() {
-        let cases: [(&str, &str); 8] = [
+        let cases: [(&str, &str); 9] = [
+            (
+                "collision_radius_px = 600.0\nstart_clearance_px = 700.0",
+                "collision_radius_px",
+            ),
             (
                 "min_free_spheres = 10\nmax_free_spheres = 5",
                 "min_free_spheres",

@@ -6,7 +6,7 @@
 //! could matter, so laziness changes speed, never results.
 
 use crate::action::Action;
-use crate::config::{EnvConfig, RewardComponent};
+use crate::config::{ConfigError, EnvConfig, RewardComponent};
 use crate::observation::Observation;
 use crate::rng::SplitMix64;
 use crate::spheres::{FreeSphere, Motion};
@@ -119,10 +119,11 @@ fn distance(a: [f64; 2], b: [f64; 2]) -> f64 {
 }
 
 impl Env {
-    /// An environment for a validated configuration; call a reset before
+    /// An environment for `config` (checked first); call a reset before
     /// stepping.
-    pub fn new(config: EnvConfig) -> Self {
-        Self {
+    pub fn new(config: EnvConfig) -> Result<Self, ConfigError> {
+        config.validate()?;
+        Ok(Self {
             motion: Motion::for_config(&config),
             seed: 0,
             spheres: Vec::with_capacity(config.max_free_spheres as usize),
@@ -134,7 +135,7 @@ impl Env {
             outcome: Outcome::Timeout,
             observation: Observation::default(),
             config,
-        }
+        })
     }
 
     /// The configuration.

@@ -1,7 +1,7 @@
 //! Evaluation of a policy over a list of episode seeds.
 
 use crate::action::Action;
-use crate::config::EnvConfig;
+use crate::config::{ConfigError, EnvConfig};
 use crate::env::{Env, Outcome};
 use crate::policy::Policy;
 use crate::vec_env::EpisodeStats;
@@ -59,7 +59,7 @@ pub fn evaluate(
     policy: &mut dyn Policy,
     seeds: &[u64],
     batch: usize,
-) -> Vec<EpisodeStats> {
+) -> Result<Vec<EpisodeStats>, ConfigError> {
     let batch = batch.max(1);
     let mut results: Vec<Option<EpisodeStats>> = vec![None; seeds.len()];
     let mut running: Vec<Running> = Vec::with_capacity(batch);
@@ -68,7 +68,10 @@ pub fn evaluate(
     let mut next = 0;
     loop {
         while running.len() < batch && next < seeds.len() {
-            let mut env = spare.pop().unwrap_or_else(|| Env::new(config.clone()));
+            let mut env = match spare.pop() {
+                Some(env) => env,
+                None => Env::new(config.clone())?,
+            };
             env.reset(seeds[next]);
             running.push(Running {
                 index: next,
@@ -109,8 +112,8 @@ pub fn evaluate(
             spare.push(done.env);
         }
     }
-    results
+    Ok(results
         .into_iter()
         .map(|r| r.expect("every seed's episode ran to its end"))
-        .collect()
+        .collect())
 }

@@ -127,10 +127,9 @@ impl Renderer {
         Ok(renderer)
     }
 
-    /// The renderer of a validated environment configuration.
-    pub fn for_config(config: &EnvConfig) -> Self {
+    /// The renderer of an environment configuration.
+    pub fn for_config(config: &EnvConfig) -> Result<Self, ConfigError> {
         Self::new(config.fov_px, config.image, config.sphere_radius_px())
-            .expect("a validated EnvConfig has a valid image resolution")
     }
 
     /// The same renderer without the trapped sphere (for pictures of free

@@ -1,7 +1,7 @@
 //! Recorded episodes, for pictures: the trap's path and every free sphere's.
 
 use crate::action::Action;
-use crate::config::EnvConfig;
+use crate::config::{ConfigError, EnvConfig};
 use crate::env::{Env, Outcome, Target};
 use crate::policy::Policy;
 
@@ -36,8 +36,8 @@ pub fn record(
     seed: u64,
     target: Target,
     policy: &mut dyn Policy,
-) -> Trajectory {
-    let mut env = Env::new(config.clone());
+) -> Result<Trajectory, ConfigError> {
+    let mut env = Env::new(config.clone())?;
     env.reset_with_target(seed, target);
     let mut trajectory = Trajectory {
         seed,
@@ -61,5 +61,5 @@ pub fn record(
         trajectory.spheres.push(env.free_sphere_positions());
     }
     trajectory.outcome = env.outcome();
-    trajectory
+    Ok(trajectory)
 }

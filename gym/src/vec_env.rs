@@ -3,7 +3,7 @@
 //! for the transition and the slot's observation is the next episode's first.
 
 use crate::action::Action;
-use crate::config::EnvConfig;
+use crate::config::{ConfigError, EnvConfig};
 use crate::env::{Env, Outcome, StepResult};
 use crate::observation::Observation;
 use crate::rng::SplitMix64;
@@ -107,23 +107,23 @@ impl VecEnv {
     /// `n` environments; slot `i` draws its episode seeds from a stream
     /// derived from `seed` and `i`, so runs are reproducible whatever the
     /// number of threads.
-    pub fn new(config: &EnvConfig, n: usize, seed: u64) -> Self {
+    pub fn new(config: &EnvConfig, n: usize, seed: u64) -> Result<Self, ConfigError> {
         let slots = (0..n)
             .map(|i| {
                 let mut seeds = SplitMix64::derived(seed, SLOT_TAG + i as u64);
-                let mut env = Env::new(config.clone());
+                let mut env = Env::new(config.clone())?;
                 env.reset(seeds.next_u64());
-                Slot {
+                Ok(Slot {
                     env,
                     seeds,
                     episode_return: 0.0,
                     last: None,
                     final_observation: Observation::default(),
                     finished: None,
-                }
+                })
             })
-            .collect();
-        Self { slots }
+            .collect::<Result<_, ConfigError>>()?;
+        Ok(Self { slots })
     }
 
     /// Number of environments.

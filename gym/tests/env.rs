@@ -29,7 +29,7 @@ fn right() -> Action {
 }
 
 fn step_once(config: EnvConfig, layout: &Layout, action: Action) -> (Env, tweezer_gym::StepResult) {
-    let mut env = Env::new(config);
+    let mut env = Env::new(config).unwrap();
     env.reset_to_layout(1, layout);
     let result = env.step(action).unwrap();
     (env, result)
@@ -126,7 +126,7 @@ fn free_spheres_move_before_the_stage() {
     let far = [TRAP[0] + 500.0, TRAP[1]];
     let mut l = layout(far, &[]);
     l.spheres.push(([TRAP[0] + 66.0, TRAP[1]], [-2.0, 0.0]));
-    let mut env = Env::new(still_config());
+    let mut env = Env::new(still_config()).unwrap();
     env.reset_to_layout(1, &l);
     let r = env.step(right()).unwrap();
     assert_eq!(r.outcome, Outcome::Collision);
@@ -153,7 +153,7 @@ fn episodes_truncate_at_the_time_limit() {
         time_limit: 25,
         ..still_config()
     };
-    let mut env = Env::new(config);
+    let mut env = Env::new(config).unwrap();
     env.reset_to_layout(3, &layout([TRAP[0] + 900.0, TRAP[1]], &[]));
     for t in 1..=25 {
         let r = env.step(Action::ZERO).unwrap();
@@ -166,7 +166,7 @@ fn episodes_truncate_at_the_time_limit() {
 
 #[test]
 fn observation_vector_points_at_the_target_and_is_clipped() {
-    let mut env = Env::new(still_config());
+    let mut env = Env::new(still_config()).unwrap();
     env.reset_to_layout(1, &layout([TRAP[0], TRAP[1] - 1000.0], &[]));
     assert_eq!(env.observation().vector, [0.0, -1.0]);
     env.step(Action::new(0.0, -1.0).unwrap()).unwrap();
@@ -190,7 +190,7 @@ fn the_observation_lists_spheres_overlapping_the_fov_in_fov_px() {
         [TRAP[0] + 640.0 + 20.0, TRAP[1] + 512.0 + 20.0], // corner, 28.3 px away: not listed
         [TRAP[0] + 100.0, TRAP[1] - 200.0], // inside
     ];
-    let mut env = Env::new(still_config());
+    let mut env = Env::new(still_config()).unwrap();
     let obs = env.reset_to_layout(1, &layout([TRAP[0] + 900.0, TRAP[1]], &spheres));
     let mut centres = obs.centres.clone();
     centres.sort_by(|a, b| a.partial_cmp(b).unwrap());
@@ -218,8 +218,8 @@ fn run(env: &mut Env, policy: &mut dyn Policy) -> (Vec<Observation>, Vec<[f64; 2
 #[test]
 fn same_seed_same_episode() {
     for seed in [0, 1, 99, u64::MAX] {
-        let mut a = Env::new(EnvConfig::default());
-        let mut b = Env::new(EnvConfig::default());
+        let mut a = Env::new(EnvConfig::default()).unwrap();
+        let mut b = Env::new(EnvConfig::default()).unwrap();
         a.reset(seed);
         b.reset(seed);
         assert_eq!(
@@ -228,8 +228,8 @@ fn same_seed_same_episode() {
         );
         assert_eq!(a.free_sphere_positions(), b.free_sphere_positions());
     }
-    let mut a = Env::new(EnvConfig::default());
-    let mut b = Env::new(EnvConfig::default());
+    let mut a = Env::new(EnvConfig::default()).unwrap();
+    let mut b = Env::new(EnvConfig::default()).unwrap();
     a.reset(1);
     b.reset(2);
     assert_ne!(a.free_sphere_positions(), b.free_sphere_positions());
@@ -238,7 +238,7 @@ fn same_seed_same_episode() {
 #[test]
 fn sphere_count_is_in_the_configured_range() {
     let config = EnvConfig::default();
-    let mut env = Env::new(config.clone());
+    let mut env = Env::new(config.clone()).unwrap();
     let counts: Vec<usize> = (0..200)
         .map(|seed| {
             env.reset(seed);
@@ -251,7 +251,7 @@ fn sphere_count_is_in_the_configured_range() {
 
 #[test]
 fn targets_are_at_the_configured_distance() {
-    let mut env = Env::new(EnvConfig::default());
+    let mut env = Env::new(EnvConfig::default()).unwrap();
     for seed in 0..50 {
         env.reset(seed);
         assert!((env.initial_distance() - 1000.0).abs() < 1e-9);
@@ -271,7 +271,7 @@ fn free_sphere_motion_does_not_depend_on_the_target() {
     let steps = 120;
     let mut reference: Option<Vec<Vec<[f64; 2]>>> = None;
     for k in 0..12 {
-        let mut env = Env::new(config.clone());
+        let mut env = Env::new(config.clone()).unwrap();
         env.reset_with_target(
             7,
             Target::Angle(f64::from(k) * std::f64::consts::TAU / 12.0),
@@ -329,8 +329,8 @@ fn lazy_simulation_equals_eager_simulation() {
     for config in [EnvConfig::default(), dense] {
         let mut outcomes = std::collections::HashSet::new();
         for seed in 0..24u64 {
-            let mut lazy = Env::new(config.clone());
-            let mut eager = Env::new(config.clone());
+            let mut lazy = Env::new(config.clone()).unwrap();
+            let mut eager = Env::new(config.clone()).unwrap();
             lazy.reset(seed);
             eager.reset(seed);
             let mut random = UniformRandom::new(seed);
@@ -377,7 +377,7 @@ fn vectorised_stepping_is_deterministic_across_thread_counts() {
             .build()
             .unwrap();
         pool.install(|| {
-            let mut envs = VecEnv::new(&config, 8, 42);
+            let mut envs = VecEnv::new(&config, 8, 42).unwrap();
             let mut random = UniformRandom::new(5);
             let mut actions = vec![Action::ZERO; 8];
             let mut log = Vec::new();
@@ -410,7 +410,7 @@ fn vectorised_envs_auto_reset_and_keep_the_final_observation() {
         time_limit: 30,
         ..EnvConfig::default()
     };
-    let mut envs = VecEnv::new(&config, 3, 9);
+    let mut envs = VecEnv::new(&config, 3, 9).unwrap();
     let first_seeds: Vec<u64> = envs.slots().iter().map(|s| s.env().seed()).collect();
     assert_eq!(envs.step(&[Action::ZERO; 2]).unwrap_err().expected, 3);
     let mut ended = 0;
@@ -433,4 +433,16 @@ fn vectorised_envs_auto_reset_and_keep_the_final_observation() {
         }
     }
     assert_eq!(ended, 3, "every episode ends by the time limit");
+}
+
+#[test]
+fn invalid_configs_are_refused_up_front() {
+    let bad = EnvConfig {
+        time_limit: 0,
+        ..EnvConfig::default()
+    };
+    assert!(Env::new(bad.clone()).is_err());
+    assert!(VecEnv::new(&bad, 2, 0).is_err());
+    let err = tweezer_gym::evaluate(&bad, &mut Greedy, &[1, 2], 4).unwrap_err();
+    assert!(err.to_string().contains("time_limit"), "{err}");
 }

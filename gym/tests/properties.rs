@@ -13,9 +13,9 @@ proptest! {
     #[test]
     fn invariants_hold(seed in any::<u64>(), moves in actions()) {
         let config = EnvConfig::default();
-        let renderer = Renderer::for_config(&config);
+        let renderer = Renderer::for_config(&config).unwrap();
         let mut image = vec![0u8; renderer.pixels()];
-        let mut env = Env::new(config.clone());
+        let mut env = Env::new(config.clone()).unwrap();
         env.reset(seed);
         let start = env.trap();
         let mut path = start;
@@ -56,7 +56,7 @@ proptest! {
 
     #[test]
     fn no_sphere_starts_near_the_trap(seed in any::<u64>()) {
-        let mut env = Env::new(EnvConfig::default());
+        let mut env = Env::new(EnvConfig::default()).unwrap();
         env.reset(seed);
         let trap = env.trap();
         prop_assert_eq!(trap, [5120.0, 4096.0]);

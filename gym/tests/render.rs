@@ -206,10 +206,10 @@ fn incremental_frames_equal_full_renders_over_an_episode() {
             },
             ..EnvConfig::default()
         };
-        let r = Renderer::for_config(&config);
+        let r = Renderer::for_config(&config).unwrap();
         let mut frame = Frame::<u8>::new(&r);
         let mut full = vec![0u8; r.pixels()];
-        let mut env = Env::new(config.clone());
+        let mut env = Env::new(config.clone()).unwrap();
         let mut policy = UniformRandom::new(2);
         let mut action = [Action::ZERO];
         for seed in 0..3 {
