@@ -92,6 +92,11 @@ impl StepResult {
     }
 }
 
+/// An episode that cannot start as asked.
+#[derive(Debug, thiserror::Error, PartialEq, Eq)]
+#[error("cannot start the episode: {0}")]
+pub struct EpisodeError(pub String);
+
 /// Stepping an episode that has already ended.
 #[derive(Debug, thiserror::Error, PartialEq, Eq)]
 #[error("the episode ended ({0:?}); reset the environment before stepping")]
@@ -150,21 +155,32 @@ impl Env {
 
     /// Starts the episode `seed` with a target drawn from the seed.
     pub fn reset(&mut self, seed: u64) -> &Observation {
-        self.reset_with_target(seed, Target::Random)
+        let angle = SplitMix64::derived(seed, TARGET_TAG).uniform(0.0, TAU);
+        self.start_episode(seed, angle)
     }
 
     /// Starts the episode `seed` with the given target. The free spheres'
     /// number, placement and motion depend on `seed` alone, so the same seed
     /// with different targets replays identical free-sphere motion.
-    pub fn reset_with_target(&mut self, seed: u64, target: Target) -> &Observation {
+    pub fn reset_with_target(
+        &mut self,
+        seed: u64,
+        target: Target,
+    ) -> Result<&Observation, EpisodeError> {
+        match target {
+            Target::Random => Ok(self.reset(seed)),
+            Target::Angle(angle) if angle.is_finite() => Ok(self.start_episode(seed, angle)),
+            Target::Angle(angle) => Err(EpisodeError(format!(
+                "target angle must be finite, got {angle}"
+            ))),
+        }
+    }
+
+    fn start_episode(&mut self, seed: u64, angle: f64) -> &Observation {
         let config = &self.config;
         let start = self.start_position();
         let count = SplitMix64::derived(seed, COUNT_TAG)
             .integer_inclusive(config.min_free_spheres, config.max_free_spheres);
-        let angle = match target {
-            Target::Random => SplitMix64::derived(seed, TARGET_TAG).uniform(0.0, TAU),
-            Target::Angle(angle) => angle,
-        };
         let d = config.target_distance_px;
         let target = [start[0] + d * angle.cos(), start[1] + d * angle.sin()];
         let motion = self.motion;
@@ -177,8 +193,32 @@ impl Env {
     }
 
     /// Starts an episode from a hand-made layout; free-sphere accelerations
-    /// are drawn from `seed`.
-    pub fn reset_to_layout(&mut self, seed: u64, layout: &Layout) -> &Observation {
+    /// are drawn from `seed`. Spheres must lie in the world and move within
+    /// the speed limit; positions must be finite.
+    pub fn reset_to_layout(
+        &mut self,
+        seed: u64,
+        layout: &Layout,
+    ) -> Result<&Observation, EpisodeError> {
+        let finite = |p: [f64; 2]| p.iter().all(|v| v.is_finite());
+        if !finite(layout.trap) || !finite(layout.target) {
+            return Err(EpisodeError("trap and target must be finite".into()));
+        }
+        let [w, h] = self.config.world_px;
+        let v_max = self.config.max_sphere_speed_px;
+        for (k, &(pos, vel)) in layout.spheres.iter().enumerate() {
+            let inside = (0.0..=w).contains(&pos[0]) && (0.0..=h).contains(&pos[1]);
+            if !inside {
+                return Err(EpisodeError(format!(
+                    "sphere {k} at {pos:?} lies outside the {w} x {h} px world"
+                )));
+            }
+            if !vel.iter().all(|v| v.abs() <= v_max) {
+                return Err(EpisodeError(format!(
+                    "sphere {k} moves at {vel:?} px/step, beyond the {v_max} px/step limit"
+                )));
+            }
+        }
         self.spheres.clear();
         self.spheres.extend(
             layout
@@ -188,7 +228,7 @@ impl Env {
                 .map(|(k, &(pos, vel))| FreeSphere::new(seed, k as u32, pos, vel)),
         );
         self.begin(seed, layout.trap, layout.target);
-        &self.observation
+        Ok(&self.observation)
     }
 
     fn begin(&mut self, seed: u64, trap: [f64; 2], target: [f64; 2]) {

@@ -27,7 +27,7 @@ pub use config::ConfigArgs;
 pub use config::{
     ConfigError, EnvConfig, ImageConfig, ProcessConfig, RewardComponent, RewardConfig, read_toml,
 };
-pub use env::{Env, EpisodeOver, Layout, Outcome, RewardParts, StepResult, Target};
+pub use env::{Env, EpisodeError, EpisodeOver, Layout, Outcome, RewardParts, StepResult, Target};
 pub use eval::{EvalSummary, evaluate};
 pub use observation::{Observation, ObservationBounds, ObservationError};
 pub use policy::{Greedy, Policy, UniformRandom};
@@ -36,5 +36,5 @@ pub use rng::SplitMix64;
 pub use seeds::{Seeds, SeedsError};
 pub use spheres::{FreeSphere, Motion};
 pub use step_record::{EndKind, EpisodeEnd, StepRecord};
-pub use trajectory::{Trajectory, record};
+pub use trajectory::{RecordError, Trajectory, record};
 pub use vec_env::{ActionCountMismatch, EpisodeStats, Slot, VecEnv};

@@ -2,6 +2,7 @@
 
 use crate::action::Action;
 use crate::config::{ConfigError, EnvConfig};
+use crate::env::EpisodeError;
 use crate::env::{Env, Outcome, Target};
 use crate::policy::Policy;
 
@@ -30,15 +31,26 @@ pub struct Trajectory {
     pub episode_return: f64,
 }
 
+/// An episode that could not be recorded.
+#[derive(Debug, thiserror::Error)]
+pub enum RecordError {
+    /// The configuration is invalid.
+    #[error(transparent)]
+    Config(#[from] ConfigError),
+    /// The episode cannot start as asked.
+    #[error(transparent)]
+    Episode(#[from] EpisodeError),
+}
+
 /// Runs episode `seed` toward `target` with `policy`, recording everything.
 pub fn record(
     config: &EnvConfig,
     seed: u64,
     target: Target,
     policy: &mut dyn Policy,
-) -> Result<Trajectory, ConfigError> {
+) -> Result<Trajectory, RecordError> {
     let mut env = Env::new(config.clone())?;
-    env.reset_with_target(seed, target);
+    env.reset_with_target(seed, target)?;
     let mut trajectory = Trajectory {
         seed,
         fov_px: [f64::from(config.fov_px[0]), f64::from(config.fov_px[1])],

@@ -30,7 +30,7 @@ fn right() -> Action {
 
 fn step_once(config: EnvConfig, layout: &Layout, action: Action) -> (Env, tweezer_gym::StepResult) {
     let mut env = Env::new(config).unwrap();
-    env.reset_to_layout(1, layout);
+    env.reset_to_layout(1, layout).unwrap();
     let result = env.step(action).unwrap();
     (env, result)
 }
@@ -127,7 +127,7 @@ fn free_spheres_move_before_the_stage() {
     let mut l = layout(far, &[]);
     l.spheres.push(([TRAP[0] + 66.0, TRAP[1]], [-2.0, 0.0]));
     let mut env = Env::new(still_config()).unwrap();
-    env.reset_to_layout(1, &l);
+    env.reset_to_layout(1, &l).unwrap();
     let r = env.step(right()).unwrap();
     assert_eq!(r.outcome, Outcome::Collision);
 }
@@ -154,7 +154,8 @@ fn episodes_truncate_at_the_time_limit() {
         ..still_config()
     };
     let mut env = Env::new(config).unwrap();
-    env.reset_to_layout(3, &layout([TRAP[0] + 900.0, TRAP[1]], &[]));
+    env.reset_to_layout(3, &layout([TRAP[0] + 900.0, TRAP[1]], &[]))
+        .unwrap();
     for t in 1..=25 {
         let r = env.step(Action::ZERO).unwrap();
         assert_eq!(r.truncated, t == 25);
@@ -167,7 +168,8 @@ fn episodes_truncate_at_the_time_limit() {
 #[test]
 fn observation_vector_points_at_the_target_and_is_clipped() {
     let mut env = Env::new(still_config()).unwrap();
-    env.reset_to_layout(1, &layout([TRAP[0], TRAP[1] - 1000.0], &[]));
+    env.reset_to_layout(1, &layout([TRAP[0], TRAP[1] - 1000.0], &[]))
+        .unwrap();
     assert_eq!(env.observation().vector, [0.0, -1.0]);
     env.step(Action::new(0.0, -1.0).unwrap()).unwrap();
     assert!((env.observation().vector[1] + 0.99).abs() < 1e-6);
@@ -191,7 +193,9 @@ fn the_observation_lists_spheres_overlapping_the_fov_in_fov_px() {
         [TRAP[0] + 100.0, TRAP[1] - 200.0], // inside
     ];
     let mut env = Env::new(still_config()).unwrap();
-    let obs = env.reset_to_layout(1, &layout([TRAP[0] + 900.0, TRAP[1]], &spheres));
+    let obs = env
+        .reset_to_layout(1, &layout([TRAP[0] + 900.0, TRAP[1]], &spheres))
+        .unwrap();
     let mut centres = obs.centres.clone();
     centres.sort_by(|a, b| a.partial_cmp(b).unwrap());
     assert_eq!(
@@ -275,7 +279,8 @@ fn free_sphere_motion_does_not_depend_on_the_target() {
         env.reset_with_target(
             7,
             Target::Angle(f64::from(k) * std::f64::consts::TAU / 12.0),
-        );
+        )
+        .unwrap();
         let mut policy = Greedy;
         let mut action = [Action::ZERO];
         let mut positions = vec![env.free_sphere_positions()];
@@ -445,4 +450,18 @@ fn invalid_configs_are_refused_up_front() {
     assert!(VecEnv::new(&bad, 2, 0).is_err());
     let err = tweezer_gym::evaluate(&bad, &mut Greedy, &[1, 2], 4).unwrap_err();
     assert!(err.to_string().contains("time_limit"), "{err}");
+}
+
+#[test]
+fn impossible_episodes_are_refused() {
+    let mut env = Env::new(still_config()).unwrap();
+    assert!(env.reset_with_target(1, Target::Angle(f64::NAN)).is_err());
+    let outside = layout([TRAP[0] + 900.0, TRAP[1]], &[[-5.0, 100.0]]);
+    let err = env.reset_to_layout(1, &outside).unwrap_err();
+    assert!(err.to_string().contains("sphere 0"), "{err}");
+    let mut fast = layout([TRAP[0] + 900.0, TRAP[1]], &[]);
+    fast.spheres.push(([100.0, 100.0], [3.0, 0.0]));
+    assert!(env.reset_to_layout(1, &fast).is_err());
+    let lost = layout([f64::INFINITY, 0.0], &[]);
+    assert!(env.reset_to_layout(1, &lost).is_err());
 }
