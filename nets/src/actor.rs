@@ -1,0 +1,56 @@
+//! The policy network.
+
+use crate::encoder::{Encoder, EncoderConfig};
+use burn::config::Config;
+use burn::module::Module;
+use burn::nn::{Linear, LinearConfig};
+use burn::tensor::activation::{relu, tanh};
+use burn::tensor::{Device, Tensor};
+
+/// Image and target vector in, stage velocities in [-1, 1]² out.
+#[derive(Module, Debug)]
+pub struct Actor {
+    encoder: Encoder,
+    fc1: Linear,
+    fc2: Linear,
+    out: Linear,
+}
+
+/// The actor's shape.
+#[derive(Config, Debug)]
+pub struct ActorConfig {
+    /// The image encoder.
+    pub encoder: EncoderConfig,
+    /// Width of the two hidden layers after the encoder.
+    #[config(default = 64)]
+    pub hidden: usize,
+}
+
+impl ActorConfig {
+    /// An actor with freshly initialised weights on `device`.
+    pub fn init(&self, device: &Device) -> Actor {
+        let features = self.encoder.features;
+        Actor {
+            encoder: self.encoder.init(device),
+            fc1: LinearConfig::new(features + 2, self.hidden).init(device),
+            fc2: LinearConfig::new(self.hidden, self.hidden).init(device),
+            out: LinearConfig::new(self.hidden, 2).init(device),
+        }
+    }
+}
+
+impl Actor {
+    /// Chooses actions.
+    ///
+    /// # Shapes
+    /// - `image`: `[batch, 1, height, width]`
+    /// - `vector`: `[batch, 2]`
+    /// - output: `[batch, 2]`, each component in [-1, 1]
+    pub fn forward(&self, image: Tensor<4>, vector: Tensor<2>) -> Tensor<2> {
+        let x = self.encoder.forward(image); // [batch, 512]
+        let x = Tensor::cat(vec![x, vector], 1); // [batch, 514]
+        let x = relu(self.fc1.forward(x)); // [batch, 64]
+        let x = relu(self.fc2.forward(x)); // [batch, 64]
+        tanh(self.out.forward(x)) // [batch, 2]
+    }
+}

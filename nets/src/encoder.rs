@@ -1,0 +1,97 @@
+//! The convolutional trunk both networks share in shape (not in weights).
+
+use burn::config::Config;
+use burn::module::Module;
+use burn::nn::conv::{Conv2d, Conv2dConfig};
+use burn::nn::{BatchNorm, BatchNormConfig, Linear, LinearConfig, PaddingConfig2d};
+use burn::tensor::activation::relu;
+use burn::tensor::{Device, Tensor};
+
+/// Three convolutions with BatchNorm and ReLU, then a 512-wide linear layer.
+#[derive(Module, Debug)]
+pub struct Encoder {
+    conv1: Conv2d,
+    norm1: BatchNorm,
+    conv2: Conv2d,
+    norm2: BatchNorm,
+    conv3: Conv2d,
+    norm3: BatchNorm,
+    fc: Linear,
+}
+
+/// The encoder's shape.
+#[derive(Config, Debug)]
+pub struct EncoderConfig {
+    /// Input image height in pixels.
+    pub height: usize,
+    /// Input image width in pixels.
+    pub width: usize,
+    /// Width of the linear layer after the convolutions.
+    #[config(default = 512)]
+    pub features: usize,
+}
+
+/// Output size of a convolution along one axis.
+fn conv_out(size: usize, kernel: usize, stride: usize, padding: usize) -> usize {
+    (size + 2 * padding).saturating_sub(kernel) / stride + 1
+}
+
+impl EncoderConfig {
+    /// Feature-map size after the three convolutions: (channels, height, width).
+    pub fn conv_output(&self) -> [usize; 3] {
+        let side = |s| conv_out(conv_out(conv_out(s, 8, 4, 2), 4, 2, 1), 3, 1, 1);
+        [64, side(self.height), side(self.width)]
+    }
+
+    /// Length of the flattened feature map: 81,920 at 256 x 320.
+    pub fn flatten_size(&self) -> usize {
+        self.conv_output().iter().product()
+    }
+
+    /// An encoder with freshly initialised weights on `device`.
+    pub fn init(&self, device: &Device) -> Encoder {
+        let conv = |channels: [usize; 2], kernel: usize, stride: usize, pad: usize| {
+            Conv2dConfig::new(channels, [kernel, kernel])
+                .with_stride([stride, stride])
+                .with_padding(PaddingConfig2d::Explicit(pad, pad, pad, pad))
+                .init(device)
+        };
+        Encoder {
+            conv1: conv([1, 32], 8, 4, 2),
+            norm1: BatchNormConfig::new(32).init(device),
+            conv2: conv([32, 64], 4, 2, 1),
+            norm2: BatchNormConfig::new(64).init(device),
+            conv3: conv([64, 64], 3, 1, 1),
+            norm3: BatchNormConfig::new(64).init(device),
+            fc: LinearConfig::new(self.flatten_size(), self.features).init(device),
+        }
+    }
+}
+
+impl Encoder {
+    /// Encodes binary images.
+    ///
+    /// # Shapes
+    /// - `image`: `[batch, 1, height, width]`
+    /// - output: `[batch, features]`
+    pub fn forward(&self, image: Tensor<4>) -> Tensor<2> {
+        let x = relu(self.norm1.forward(self.conv1.forward(image))); // [batch, 32, h/4, w/4]
+        let x = relu(self.norm2.forward(self.conv2.forward(x))); // [batch, 64, h/8, w/8]
+        let x = relu(self.norm3.forward(self.conv3.forward(x))); // [batch, 64, h/8, w/8]
+        relu(self.fc.forward(x.flatten::<2>(1, 3))) // [batch, features]
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_paper_sizes_follow_from_the_layers() {
+        let paper = EncoderConfig::new(256, 320);
+        assert_eq!(paper.conv_output(), [64, 32, 40]);
+        assert_eq!(paper.flatten_size(), 81_920);
+        assert_eq!(EncoderConfig::new(64, 80).conv_output(), [64, 8, 10]);
+        assert_eq!(EncoderConfig::new(128, 160).flatten_size(), 64 * 16 * 20);
+    }
+}
