@@ -1,0 +1,4 @@
+//! The learner: the replay table, TD3 and (with the learner issue's later
+//! parts) the gRPC service that feeds them.
+
+pub mod replay;

@@ -1,0 +1,224 @@
+//! The replay table: FIFO order, linking, wrap-around, uniform sampling,
+//! memory per transition.
+
+use tweezer_gym::{
+    Action, EndKind, EnvConfig, EpisodeEnd, Observation, SplitMix64, StepRecord, UniformRandom,
+    VecEnv,
+};
+use tweezer_learner::replay::{Replay, ReplayConfig, ReplayError};
+
+/// An observation that encodes `tag` in its vector (and `tag % 3` centres).
+fn obs(tag: f32) -> Observation {
+    Observation {
+        centres: (0..(tag as usize % 3)).map(|k| [tag, k as f32]).collect(),
+        vector: [tag / 1e6, 0.5],
+    }
+}
+
+fn tag_of(vectors: &[f32], i: usize) -> f32 {
+    (vectors[2 * i] * 1e6).round()
+}
+
+fn step(env: u32, episode: u64, t: u32, tag: f32, end: Option<EndKind>) -> StepRecord {
+    StepRecord {
+        env,
+        episode,
+        t,
+        observation: obs(tag),
+        action: Action::new(0.5, -0.5).unwrap(),
+        reward: tag,
+        end: end.map(|kind| EpisodeEnd {
+            kind,
+            final_observation: obs(tag + 1000.0),
+        }),
+    }
+}
+
+fn small(capacity: usize) -> Replay {
+    Replay::new(ReplayConfig {
+        capacity,
+        centres_per_transition: 32,
+    })
+}
+
+#[test]
+fn steps_become_transitions_when_their_successor_arrives() {
+    let mut replay = small(100);
+    let mut rng = SplitMix64::new(1);
+    assert_eq!(replay.sample(4, &mut rng), Err(ReplayError::Empty));
+    replay.insert(0, &step(0, 7, 0, 1.0, None)).unwrap();
+    assert!(replay.is_empty());
+    replay.insert(0, &step(0, 7, 1, 2.0, None)).unwrap();
+    assert_eq!(replay.len(), 1);
+    let batch = replay.sample(8, &mut rng).unwrap();
+    for i in 0..8 {
+        assert_eq!(tag_of(&batch.vectors, i), 1.0);
+        assert_eq!(tag_of(&batch.next_vectors, i), 2.0);
+        assert_eq!(batch.rewards[i], 1.0);
+        assert_eq!(batch.terminated[i], 0.0);
+        assert_eq!(batch.centres[i], obs(1.0).centres);
+        assert_eq!(batch.next_centres[i], obs(2.0).centres);
+        assert_eq!(&batch.actions[2 * i..2 * i + 2], &[0.5, -0.5]);
+    }
+}
+
+#[test]
+fn interleaved_environments_and_actors_link_to_their_own_successors() {
+    let mut replay = small(100);
+    replay.insert(0, &step(0, 1, 0, 10.0, None)).unwrap();
+    replay.insert(0, &step(1, 2, 0, 20.0, None)).unwrap();
+    replay.insert(1, &step(0, 3, 0, 30.0, None)).unwrap();
+    replay.insert(0, &step(1, 2, 1, 21.0, None)).unwrap();
+    replay.insert(1, &step(0, 3, 1, 31.0, None)).unwrap();
+    replay.insert(0, &step(0, 1, 1, 11.0, None)).unwrap();
+    assert_eq!(replay.len(), 3);
+    let batch = replay.sample(300, &mut SplitMix64::new(2)).unwrap();
+    for i in 0..300 {
+        let (now, next) = (tag_of(&batch.vectors, i), tag_of(&batch.next_vectors, i));
+        assert_eq!(next, now + 1.0, "{now} → {next}");
+    }
+}
+
+#[test]
+fn episode_ends_use_the_final_observation_and_mark_termination() {
+    let mut replay = small(100);
+    replay
+        .insert(0, &step(0, 1, 0, 5.0, Some(EndKind::Terminated)))
+        .unwrap();
+    replay
+        .insert(0, &step(1, 2, 0, 6.0, Some(EndKind::Truncated)))
+        .unwrap();
+    assert_eq!(replay.len(), 2);
+    let batch = replay.sample(200, &mut SplitMix64::new(3)).unwrap();
+    for i in 0..200 {
+        let now = tag_of(&batch.vectors, i);
+        assert_eq!(tag_of(&batch.next_vectors, i), now + 1000.0);
+        let expected = if now == 5.0 { 1.0 } else { 0.0 };
+        assert_eq!(
+            batch.terminated[i], expected,
+            "truncation bootstraps, termination does not"
+        );
+    }
+    // A new episode in the same environment does not link to the old one.
+    replay.insert(0, &step(0, 9, 0, 7.0, None)).unwrap();
+    replay.insert(0, &step(0, 9, 1, 8.0, None)).unwrap();
+    assert_eq!(replay.len(), 3);
+}
+
+#[test]
+fn gaps_and_restarts_do_not_link() {
+    let mut replay = small(100);
+    replay.insert(0, &step(0, 1, 0, 1.0, None)).unwrap();
+    replay.insert(0, &step(0, 1, 2, 3.0, None)).unwrap(); // step 1 lost
+    replay.insert(0, &step(0, 4, 0, 4.0, None)).unwrap(); // restarted mid-episode
+    assert!(replay.is_empty());
+}
+
+#[test]
+fn fifo_removes_the_oldest_and_wraps_around() {
+    let mut replay = small(50);
+    for t in 0..1000u32 {
+        replay.insert(0, &step(0, 1, t, t as f32, None)).unwrap();
+        assert!(replay.len() <= 50);
+    }
+    assert_eq!(replay.len(), 50);
+    assert_eq!(replay.inserted(), 999);
+    let batch = replay.sample(2000, &mut SplitMix64::new(4)).unwrap();
+    let tags: Vec<f32> = (0..2000).map(|i| tag_of(&batch.vectors, i)).collect();
+    // Only the newest 50 complete transitions remain: steps 949..=998.
+    assert!(
+        tags.iter().all(|&t| (949.0..=998.0).contains(&t)),
+        "{tags:?}"
+    );
+    assert!((949..=998).all(|t| tags.contains(&(t as f32))));
+    for i in 0..2000 {
+        assert_eq!(batch.centres[i], obs(tags[i]).centres);
+    }
+}
+
+#[test]
+fn sampling_is_uniform() {
+    let mut replay = small(40);
+    for t in 0..41u32 {
+        // Episodes of 5 steps, so final-observation records are interleaved.
+        let end = (t % 5 == 4).then_some(EndKind::Truncated);
+        replay
+            .insert(0, &step(0, u64::from(t / 5), t % 5, t as f32, end))
+            .unwrap();
+    }
+    let n = replay.len();
+    let draws = 40_000;
+    let batch = replay.sample(draws, &mut SplitMix64::new(5)).unwrap();
+    let mut counts = std::collections::HashMap::new();
+    for i in 0..draws {
+        *counts
+            .entry(tag_of(&batch.vectors, i) as u32)
+            .or_insert(0usize) += 1;
+    }
+    assert_eq!(counts.len(), n);
+    let expected = draws as f64 / n as f64;
+    let chi2: f64 = counts
+        .values()
+        .map(|&c| (c as f64 - expected).powi(2) / expected)
+        .sum();
+    // 99.9th percentile of chi-square with ~40 degrees of freedom is ~73.
+    assert!(chi2 < 80.0, "chi² = {chi2} over {n} transitions");
+}
+
+#[test]
+fn a_full_replay_of_real_observations_stays_under_500_bytes_per_transition() {
+    let capacity = 60_000;
+    let mut replay = Replay::new(ReplayConfig {
+        capacity,
+        ..ReplayConfig::default()
+    });
+    let config = EnvConfig::default();
+    let mut envs = VecEnv::new(&config, 16, 11).unwrap();
+    let mut policy = UniformRandom::new(3);
+    let mut actions = vec![Action::ZERO; 16];
+    let mut t = vec![0u32; 16];
+    while replay.inserted() < capacity as u64 + 5_000 {
+        let observations: Vec<Observation> = envs
+            .slots()
+            .iter()
+            .map(|s| s.observation().clone())
+            .collect();
+        for a in &mut actions {
+            *a = policy.sample();
+        }
+        envs.step(&actions).unwrap();
+        for (i, slot) in envs.slots().iter().enumerate() {
+            let result = slot.last().unwrap();
+            let end = slot.finished().map(|_| EpisodeEnd {
+                kind: if result.terminated {
+                    EndKind::Terminated
+                } else {
+                    EndKind::Truncated
+                },
+                final_observation: slot.next_observation().clone(),
+            });
+            let record = StepRecord {
+                env: i as u32,
+                episode: slot.finished().map_or(slot.env().seed(), |f| f.seed),
+                t: t[i],
+                observation: observations[i].clone(),
+                action: actions[i],
+                reward: result.reward as f32,
+                end,
+            };
+            t[i] = if slot.finished().is_some() {
+                0
+            } else {
+                t[i] + 1
+            };
+            replay.insert(0, &record).unwrap();
+        }
+    }
+    assert_eq!(replay.len(), capacity);
+    let per_transition = replay.bytes() as f64 / capacity as f64;
+    eprintln!("replay: {per_transition:.1} bytes per transition");
+    assert!(
+        per_transition <= 500.0,
+        "{per_transition} bytes per transition"
+    );
+}
