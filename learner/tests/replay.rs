@@ -131,8 +131,8 @@ fn fifo_removes_the_oldest_and_wraps_around() {
         "{tags:?}"
     );
     assert!((949..=998).all(|t| tags.contains(&(t as f32))));
-    for i in 0..2000 {
-        assert_eq!(batch.centres[i], obs(tags[i]).centres);
+    for (centres, &tag) in batch.centres.iter().zip(&tags) {
+        assert_eq!(*centres, obs(tag).centres);
     }
 }
 
@@ -176,7 +176,7 @@ fn a_full_replay_of_real_observations_stays_under_500_bytes_per_transition() {
     let mut envs = VecEnv::new(&config, 16, 11).unwrap();
     let mut policy = UniformRandom::new(3);
     let mut actions = vec![Action::ZERO; 16];
-    let mut t = vec![0u32; 16];
+    let mut t = [0u32; 16];
     while replay.inserted() < capacity as u64 + 5_000 {
         let observations: Vec<Observation> = envs
             .slots()
