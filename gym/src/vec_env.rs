@@ -7,6 +7,7 @@ use crate::config::{ConfigError, EnvConfig};
 use crate::env::{Env, Outcome, StepResult};
 use crate::observation::Observation;
 use crate::rng::SplitMix64;
+use crate::step_record::{EndKind, EpisodeEnd, StepRecord};
 use rayon::prelude::*;
 
 const SLOT_TAG: u64 = 0x5107_0000_0000;
@@ -31,12 +32,20 @@ pub struct Slot {
     seeds: SplitMix64,
     episode_return: f64,
     last: Option<StepResult>,
+    /// The observation the last action responded to, with its episode and
+    /// step index.
+    observed: Observation,
+    observed_at: (u64, u32),
+    action: Action,
     final_observation: Observation,
     finished: Option<EpisodeStats>,
 }
 
 impl Slot {
     fn step(&mut self, action: Action) {
+        self.observed.clone_from(self.env.observation());
+        self.observed_at = (self.env.seed(), self.env.steps());
+        self.action = action;
         let result = self
             .env
             .step(action)
@@ -85,6 +94,29 @@ impl Slot {
     pub fn env(&self) -> &Env {
         &self.env
     }
+
+    /// The last step as an actor reports it, labelled as environment `env`
+    /// (`None` before the first step).
+    pub fn record(&self, env: u32) -> Option<StepRecord> {
+        let last = self.last?;
+        let (episode, t) = self.observed_at;
+        Some(StepRecord {
+            env,
+            episode,
+            t,
+            observation: self.observed.clone(),
+            action: self.action,
+            reward: last.reward as f32,
+            end: self.finished.map(|_| EpisodeEnd {
+                kind: if last.terminated {
+                    EndKind::Terminated
+                } else {
+                    EndKind::Truncated
+                },
+                final_observation: self.final_observation.clone(),
+            }),
+        })
+    }
 }
 
 /// Actions whose count is not the number of environments.
@@ -118,6 +150,9 @@ impl VecEnv {
                     seeds,
                     episode_return: 0.0,
                     last: None,
+                    observed: Observation::default(),
+                    observed_at: (0, 0),
+                    action: Action::ZERO,
                     final_observation: Observation::default(),
                     finished: None,
                 })

@@ -465,3 +465,49 @@ fn impossible_episodes_are_refused() {
     let lost = layout([f64::INFINITY, 0.0], &[]);
     assert!(env.reset_to_layout(1, &lost).is_err());
 }
+
+#[test]
+fn slot_records_chain_into_transitions() {
+    let config = EnvConfig {
+        time_limit: 40,
+        ..EnvConfig::default()
+    };
+    let mut envs = VecEnv::new(&config, 2, 5).unwrap();
+    assert!(envs.slots()[0].record(0).is_none());
+    let mut policy = UniformRandom::new(8);
+    let mut actions = [Action::ZERO; 2];
+    let mut previous: Vec<Option<tweezer_gym::StepRecord>> = vec![None, None];
+    let mut ends = 0;
+    for _ in 0..100 {
+        let before: Vec<Observation> = envs
+            .slots()
+            .iter()
+            .map(|s| s.observation().clone())
+            .collect();
+        policy.act(&envs.observations(), &mut actions);
+        envs.step(&actions).unwrap();
+        for (i, slot) in envs.slots().iter().enumerate() {
+            let record = slot.record(i as u32).unwrap();
+            assert_eq!(record.observation, before[i]);
+            assert_eq!(record.action, actions[i]);
+            assert_eq!(
+                f64::from(record.reward),
+                slot.last().unwrap().reward as f32 as f64
+            );
+            if let Some(p) = &previous[i]
+                && p.end.is_none()
+            {
+                assert_eq!((record.episode, record.t), (p.episode, p.t + 1));
+            } else {
+                assert_eq!(record.t, 0);
+            }
+            if let Some(end) = &record.end {
+                ends += 1;
+                assert_eq!(&end.final_observation, slot.next_observation());
+                assert_eq!(record.terminated(), slot.last().unwrap().terminated);
+            }
+            previous[i] = Some(record);
+        }
+    }
+    assert!(ends >= 4, "{ends} episodes ended");
+}

@@ -1,12 +1,14 @@
-//! The learner process. It will hold the FIFO replay, train TD3 and serve
-//! policy snapshots over gRPC (the learner issue); today it reads and checks
-//! the configuration the whole run shares.
+//! The learner process. Today: the configuration check and the benchmark of
+//! the replay and TD3 update; the gRPC service comes with the rest of the
+//! learner issue.
 
+use anyhow::bail;
+use burn::tensor::Device;
 use clap::{Parser, Subcommand};
 use tweezer_gym::ConfigArgs;
 
-/// Tweezer RL learner. Replay, TD3 training and the gRPC service are not
-/// built yet; `config` checks a config file and prints what it means.
+/// Tweezer RL learner. Replay and TD3 are built and benchmarked; the gRPC
+/// service that feeds them is not built yet.
 #[derive(Parser)]
 #[command(version, about)]
 struct Cli {
@@ -20,6 +22,18 @@ struct Cli {
 enum Command {
     /// Print the effective configuration (the file over SPEC defaults) as TOML.
     Config,
+    /// Measure TD3 updates, inference and replay memory on the CPU.
+    Bench {
+        /// TD3 updates timed (rounded up to an even number).
+        #[arg(long, default_value_t = 4)]
+        updates: usize,
+        /// Replay capacity filled to measure bytes per transition.
+        #[arg(long, default_value_t = 1_050_000)]
+        replay_capacity: usize,
+        /// Print one JSON object instead of a table.
+        #[arg(long)]
+        json: bool,
+    },
 }
 
 fn main() -> anyhow::Result<()> {
@@ -27,6 +41,43 @@ fn main() -> anyhow::Result<()> {
     let config = cli.config.load()?;
     match cli.command {
         Command::Config => print!("{}", config.to_toml()),
+        Command::Bench {
+            updates,
+            replay_capacity,
+            json,
+        } => {
+            if replay_capacity == 0 {
+                bail!("--replay-capacity must be at least 1");
+            }
+            let report = tweezer_learner::bench::run(
+                &config.env,
+                replay_capacity,
+                updates,
+                &Device::flex(),
+            )?;
+            if json {
+                println!("{}", serde_json::to_string(&report)?);
+            } else {
+                println!("TD3 update, batch 32     {:.0} ms", report.update_ms_mean);
+                println!("  critic step            {:.0} ms", report.critic_step_ms);
+                println!("  actor step             {:.0} ms", report.actor_step_ms);
+                println!(
+                    "actor inference, b1      {:.1} ms",
+                    report.actor_infer_ms_batch1
+                );
+                println!(
+                    "actor inference, b16     {:.1} ms",
+                    report.actor_infer_ms_batch16
+                );
+                println!(
+                    "replay                   {:.0} bytes/transition at {} transitions",
+                    report.replay_bytes_per_transition, report.replay_capacity
+                );
+                for missing in &report.missing {
+                    println!("not measured: {missing}");
+                }
+            }
+        }
     }
     Ok(())
 }

@@ -176,42 +176,13 @@ fn a_full_replay_of_real_observations_stays_under_500_bytes_per_transition() {
     let mut envs = VecEnv::new(&config, 16, 11).unwrap();
     let mut policy = UniformRandom::new(3);
     let mut actions = vec![Action::ZERO; 16];
-    let mut t = [0u32; 16];
     while replay.inserted() < capacity as u64 + 5_000 {
-        let observations: Vec<Observation> = envs
-            .slots()
-            .iter()
-            .map(|s| s.observation().clone())
-            .collect();
         for a in &mut actions {
             *a = policy.sample();
         }
         envs.step(&actions).unwrap();
         for (i, slot) in envs.slots().iter().enumerate() {
-            let result = slot.last().unwrap();
-            let end = slot.finished().map(|_| EpisodeEnd {
-                kind: if result.terminated {
-                    EndKind::Terminated
-                } else {
-                    EndKind::Truncated
-                },
-                final_observation: slot.next_observation().clone(),
-            });
-            let record = StepRecord {
-                env: i as u32,
-                episode: slot.finished().map_or(slot.env().seed(), |f| f.seed),
-                t: t[i],
-                observation: observations[i].clone(),
-                action: actions[i],
-                reward: result.reward as f32,
-                end,
-            };
-            t[i] = if slot.finished().is_some() {
-                0
-            } else {
-                t[i] + 1
-            };
-            replay.insert(0, &record).unwrap();
+            replay.insert(0, &slot.record(i as u32).unwrap()).unwrap();
         }
     }
     assert_eq!(replay.len(), capacity);

@@ -1,0 +1,33 @@
+//! Sampled transitions → the tensors TD3 trains on. Images are rendered by
+//! the shared renderer straight into the buffers that become the tensors.
+
+use crate::replay::SampledBatch;
+use crate::td3::Batch;
+use burn::tensor::{Device, Tensor, TensorData};
+use tweezer_gym::Renderer;
+
+/// Renders every observation of `sampled` and moves the batch to `device`.
+pub fn to_tensors(sampled: &SampledBatch, renderer: &Renderer, device: &Device) -> Batch {
+    let n = sampled.rewards.len();
+    let (h, w) = (renderer.height(), renderer.width());
+    let images = |centres: &[Vec<[f32; 2]>]| {
+        let mut pixels = vec![0f32; n * renderer.pixels()];
+        for (slot, c) in pixels.chunks_exact_mut(renderer.pixels()).zip(centres) {
+            renderer
+                .render(c, slot)
+                .expect("each slot is one image of the renderer's size");
+        }
+        Tensor::<4>::from_data(TensorData::new(pixels, [n, 1, h, w]), device)
+    };
+    let pairs = |v: &[f32]| Tensor::<2>::from_data(TensorData::new(v.to_vec(), [n, 2]), device);
+    let column = |v: &[f32]| Tensor::<2>::from_data(TensorData::new(v.to_vec(), [n, 1]), device);
+    Batch {
+        image: images(&sampled.centres),
+        vector: pairs(&sampled.vectors),
+        action: pairs(&sampled.actions),
+        reward: column(&sampled.rewards),
+        terminated: column(&sampled.terminated),
+        next_image: images(&sampled.next_centres),
+        next_vector: pairs(&sampled.next_vectors),
+    }
+}

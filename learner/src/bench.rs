@@ -1,0 +1,134 @@
+//! `learner bench`: how fast the learner's parts run on this machine.
+
+use crate::batch::to_tensors;
+use crate::replay::{Replay, ReplayConfig};
+use crate::td3::{Td3, Td3Config};
+use burn::tensor::{Device, Distribution, Tensor};
+use serde::Serialize;
+use std::time::Instant;
+use tweezer_gym::{Action, ConfigError, EnvConfig, Renderer, SplitMix64, UniformRandom, VecEnv};
+
+/// Benchmark figures. Times are means over the timed repetitions.
+#[derive(Debug, Serialize)]
+pub struct LearnerBench {
+    /// One full TD3 update at batch 32: sampling, rendering, the critic
+    /// step, and the actor step with soft updates every second update;
+    /// averaged over an even number of consecutive updates.
+    pub update_ms_mean: f64,
+    /// The critic part of an update.
+    pub critic_step_ms: f64,
+    /// The actor part of the updates that have one.
+    pub actor_step_ms: f64,
+    /// Actor inference without autodiff, batch 1.
+    pub actor_infer_ms_batch1: f64,
+    /// Actor inference without autodiff, batch 16.
+    pub actor_infer_ms_batch16: f64,
+    /// Replay memory per transition, on a replay filled to capacity with
+    /// random-policy steps.
+    pub replay_bytes_per_transition: f64,
+    /// Capacity of that replay.
+    pub replay_capacity: usize,
+    /// Image resolution (width, height).
+    pub resolution: [u32; 2],
+    /// Updates timed.
+    pub updates_timed: usize,
+    /// Figures the learner cannot measure yet, and why.
+    pub missing: Vec<String>,
+}
+
+fn mean(v: &[f64]) -> f64 {
+    v.iter().sum::<f64>() / v.len().max(1) as f64
+}
+
+/// Fills a replay of `capacity` transitions from random-policy episodes.
+fn filled_replay(env: &EnvConfig, capacity: usize) -> Result<Replay, ConfigError> {
+    let mut replay = Replay::new(ReplayConfig {
+        capacity,
+        ..ReplayConfig::default()
+    });
+    let n = 64;
+    let mut envs = VecEnv::new(env, n, 1)?;
+    let mut policy = UniformRandom::new(1);
+    let mut actions = vec![Action::ZERO; n];
+    while replay.len() < capacity {
+        for a in &mut actions {
+            *a = policy.sample();
+        }
+        envs.step(&actions).expect("one action per environment");
+        for (i, slot) in envs.slots().iter().enumerate() {
+            let record = slot.record(i as u32).expect("stepped");
+            replay
+                .insert(0, &record)
+                .expect("environment observations fit a record");
+        }
+    }
+    Ok(replay)
+}
+
+/// Mean time of `f` over `reps` calls after one warm-up call, ms.
+fn time_ms(reps: usize, mut f: impl FnMut()) -> f64 {
+    f();
+    let start = Instant::now();
+    for _ in 0..reps {
+        f();
+    }
+    start.elapsed().as_secs_f64() * 1e3 / reps as f64
+}
+
+/// Runs every benchmark: `updates` (rounded up to even) timed TD3 updates
+/// after two warm-up updates, on a replay of `capacity` transitions.
+pub fn run(
+    env: &EnvConfig,
+    capacity: usize,
+    updates: usize,
+    device: &Device,
+) -> Result<LearnerBench, ConfigError> {
+    let renderer = Renderer::for_config(env)?;
+    let (h, w) = (renderer.height(), renderer.width());
+    let replay = filled_replay(env, capacity)?;
+    let replay_bytes_per_transition = replay.bytes() as f64 / replay.len() as f64;
+
+    let training = device.clone().autodiff();
+    let mut td3 = Td3::new(Td3Config::default(), h, w, &training)?;
+    let mut rng = SplitMix64::new(7);
+    let mut step = || {
+        let sampled = replay.sample(32, &mut rng).expect("the replay is full");
+        td3.update(to_tensors(&sampled, &renderer, &training))
+    };
+    step();
+    step();
+    let updates = updates.max(2).next_multiple_of(2);
+    let started = Instant::now();
+    let stats: Vec<_> = (0..updates).map(|_| step()).collect();
+    let update_ms_mean = started.elapsed().as_secs_f64() * 1e3 / updates as f64;
+    let critic: Vec<f64> = stats.iter().map(|s| s.critic_ms).collect();
+    let actor: Vec<f64> = stats
+        .iter()
+        .filter(|s| s.actor_loss.is_some())
+        .map(|s| s.actor_ms)
+        .collect();
+
+    let policy = td3.policy();
+    let infer = |batch: usize| {
+        let image = Tensor::<4>::random([batch, 1, h, w], Distribution::Bernoulli(0.05), device);
+        let vector = Tensor::<2>::random([batch, 2], Distribution::Uniform(-1.0, 1.0), device);
+        time_ms(10, || {
+            let action = policy.forward(image.clone(), vector.clone());
+            std::hint::black_box(action.into_data());
+        })
+    };
+    Ok(LearnerBench {
+        update_ms_mean,
+        critic_step_ms: mean(&critic),
+        actor_step_ms: mean(&actor),
+        actor_infer_ms_batch1: infer(1),
+        actor_infer_ms_batch16: infer(16),
+        replay_bytes_per_transition,
+        replay_capacity: capacity,
+        resolution: [env.image.width, env.image.height],
+        updates_timed: updates,
+        missing: vec![
+            "ingest_transitions_per_sec: the learner's gRPC service is not built yet".into(),
+        ],
+    })
+}

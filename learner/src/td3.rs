@@ -1,0 +1,342 @@
+//! TD3 (Fujimoto, van Hoof and Meger, 2018), in the order of the paper's
+//! pseudo-code: target actions with clipped noise, the smaller of the twin
+//! target critics, the critic loss; every `policy_delay` updates the actor
+//! loss and the soft target updates. Targets run without autodiff, so their
+//! BatchNorm layers use running statistics.
+
+use burn::module::{Module, ModuleMapper, ModuleVisitor, Param};
+use burn::nn::loss::{MseLoss, Reduction};
+use burn::optim::{AdamConfig, GradientsParams, ModuleOptimizer};
+use burn::tensor::{Device, Distribution, Tensor};
+use serde::{Deserialize, Serialize};
+use std::time::Instant;
+use tweezer_gym::ConfigError;
+use tweezer_nets::{Actor, ActorConfig, Critic, CriticConfig, EncoderConfig};
+
+/// TD3's hyper-parameters; defaults are SPEC §4.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct Td3Config {
+    /// Discount factor γ (the paper's best: 0.86).
+    pub gamma: f64,
+    /// Soft target update rate τ.
+    pub tau: f64,
+    /// Standard deviation of the target policy smoothing noise.
+    pub policy_noise: f64,
+    /// The smoothing noise is clipped to ±this.
+    pub noise_clip: f64,
+    /// Critic updates per actor update.
+    pub policy_delay: u64,
+    /// Adam learning rate of the actor.
+    pub actor_lr: f64,
+    /// Adam learning rate of the critics.
+    pub critic_lr: f64,
+}
+
+impl Default for Td3Config {
+    fn default() -> Self {
+        Self {
+            gamma: 0.86,
+            tau: 0.005,
+            policy_noise: 0.2,
+            noise_clip: 0.5,
+            policy_delay: 2,
+            actor_lr: 3e-4,
+            critic_lr: 3e-4,
+        }
+    }
+}
+
+impl Td3Config {
+    /// Checks every field; the error names the first one out of range.
+    pub fn validate(&self) -> Result<(), ConfigError> {
+        let unit = [("td3.gamma", self.gamma), ("td3.tau", self.tau)];
+        for (field, value) in unit {
+            if !(0.0..=1.0).contains(&value) {
+                return Err(invalid(field, format!("must be in [0, 1], got {value}")));
+            }
+        }
+        let non_negative = [
+            ("td3.policy_noise", self.policy_noise),
+            ("td3.noise_clip", self.noise_clip),
+        ];
+        for (field, value) in non_negative {
+            if !(value.is_finite() && value >= 0.0) {
+                return Err(invalid(
+                    field,
+                    format!("must be finite and >= 0, got {value}"),
+                ));
+            }
+        }
+        for (field, value) in [
+            ("td3.actor_lr", self.actor_lr),
+            ("td3.critic_lr", self.critic_lr),
+        ] {
+            if !(value.is_finite() && value > 0.0) {
+                return Err(invalid(
+                    field,
+                    format!("must be finite and > 0, got {value}"),
+                ));
+            }
+        }
+        if self.policy_delay == 0 {
+            return Err(invalid("td3.policy_delay", "must be at least 1"));
+        }
+        Ok(())
+    }
+}
+
+fn invalid(field: &str, reason: impl Into<String>) -> ConfigError {
+    ConfigError::Invalid {
+        field: field.into(),
+        reason: reason.into(),
+    }
+}
+
+/// The two critics, trained together by one optimiser.
+#[derive(Module, Debug)]
+pub struct TwinCritic {
+    q1: Critic,
+    q2: Critic,
+}
+
+/// A batch of transitions as tensors, on the training device.
+#[derive(Clone, Debug)]
+pub struct Batch {
+    /// `[batch, 1, height, width]` binary images.
+    pub image: Tensor<4>,
+    /// `[batch, 2]` target vectors.
+    pub vector: Tensor<2>,
+    /// `[batch, 2]` actions taken.
+    pub action: Tensor<2>,
+    /// `[batch, 1]` rewards.
+    pub reward: Tensor<2>,
+    /// `[batch, 1]`: 1 where the episode terminated (no bootstrap).
+    pub terminated: Tensor<2>,
+    /// `[batch, 1, height, width]` next images.
+    pub next_image: Tensor<4>,
+    /// `[batch, 2]` next target vectors.
+    pub next_vector: Tensor<2>,
+}
+
+/// What one update measured.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct UpdateStats {
+    /// Wall time of the critic step (targets, losses, backward, Adam), ms.
+    pub critic_ms: f64,
+    /// Wall time of the actor step and soft updates, ms (0 when skipped).
+    pub actor_ms: f64,
+    /// Mean squared TD error, summed over the two critics.
+    pub critic_loss: f64,
+    /// −Q1(s, π(s)), when the actor was updated this time.
+    pub actor_loss: Option<f64>,
+    /// Mean Q1 of the batch's actions.
+    pub mean_q: f64,
+}
+
+/// The learner's networks, their targets and optimisers.
+pub struct Td3 {
+    config: Td3Config,
+    actor: Actor,
+    critics: TwinCritic,
+    actor_target: Actor,
+    critics_target: TwinCritic,
+    actor_optim: ModuleOptimizer,
+    critic_optim: ModuleOptimizer,
+    updates: u64,
+}
+
+impl Td3 {
+    /// Fresh networks for `height` x `width` images on `device` (an
+    /// autodiff device), once `config` is checked.
+    pub fn new(
+        config: Td3Config,
+        height: usize,
+        width: usize,
+        device: &Device,
+    ) -> Result<Self, ConfigError> {
+        config.validate()?;
+        let encoder = EncoderConfig::new(height, width);
+        let actor = ActorConfig::new(encoder.clone()).init(device);
+        let critics = TwinCritic {
+            q1: CriticConfig::new(encoder.clone()).init(device),
+            q2: CriticConfig::new(encoder).init(device),
+        };
+        Ok(Self {
+            actor_target: actor.valid(),
+            critics_target: critics.valid(),
+            actor,
+            critics,
+            actor_optim: AdamConfig::new().init(),
+            critic_optim: AdamConfig::new().init(),
+            updates: 0,
+            config,
+        })
+    }
+
+    /// The current policy, for inference (no autodiff).
+    pub fn policy(&self) -> Actor {
+        self.actor.valid()
+    }
+
+    /// Updates made so far.
+    pub fn updates(&self) -> u64 {
+        self.updates
+    }
+
+    /// One TD3 update on `batch`.
+    pub fn update(&mut self, batch: Batch) -> UpdateStats {
+        let c = &self.config;
+        let started = Instant::now();
+        let Batch {
+            image,
+            vector,
+            action,
+            reward,
+            terminated,
+            next_image,
+            next_vector,
+        } = batch;
+
+        // Target policy smoothing: a' = clip(π'(s') + clip(ε, -c, c), -1, 1).
+        let target_device = next_image.device();
+        let (next_image, next_vector) = (next_image.valid(), next_vector.valid());
+        let next_action = self
+            .actor_target
+            .forward(next_image.clone(), next_vector.clone());
+        let noise = Tensor::<2>::random(
+            next_action.shape(),
+            Distribution::Normal(0.0, c.policy_noise),
+            &next_action.device(),
+        );
+        let next_action = smoothed_target_action(next_action, noise, c.noise_clip);
+
+        // Clipped double Q: y = r + γ (1 - terminated) min(Q1'(s', a'), Q2'(s', a')).
+        let q1_next = self.critics_target.q1.forward(
+            next_image.clone(),
+            next_vector.clone(),
+            next_action.clone(),
+        );
+        let q2_next = self
+            .critics_target
+            .q2
+            .forward(next_image, next_vector, next_action);
+        let y = td_target(
+            reward.valid(),
+            terminated.valid(),
+            q1_next,
+            q2_next,
+            c.gamma,
+        );
+        let y = Tensor::from_inner(y).to_device(&target_device);
+
+        // Critic loss: MSE(Q1(s, a), y) + MSE(Q2(s, a), y).
+        let q1 = self
+            .critics
+            .q1
+            .forward(image.clone(), vector.clone(), action.clone());
+        let q2 = self
+            .critics
+            .q2
+            .forward(image.clone(), vector.clone(), action);
+        let mse = MseLoss::new();
+        let critic_loss = mse.forward(q1.clone(), y.clone(), Reduction::Mean)
+            + mse.forward(q2, y, Reduction::Mean);
+        let stats_critic = scalar(&critic_loss);
+        let mean_q = scalar(&q1.mean());
+        let grads = GradientsParams::from_grads(critic_loss.backward(), &self.critics);
+        self.critics = self
+            .critic_optim
+            .step(c.critic_lr, self.critics.clone(), grads);
+        self.updates += 1;
+        let critic_ms = started.elapsed().as_secs_f64() * 1e3;
+
+        // Delayed policy update and soft target updates.
+        let started = Instant::now();
+        let mut actor_loss = None;
+        if self.updates.is_multiple_of(c.policy_delay) {
+            let pi = self.actor.forward(image.clone(), vector.clone());
+            let loss = self.critics.q1.forward(image, vector, pi).mean().neg();
+            actor_loss = Some(scalar(&loss));
+            let grads = GradientsParams::from_grads(loss.backward(), &self.actor);
+            self.actor = self.actor_optim.step(c.actor_lr, self.actor.clone(), grads);
+
+            self.actor_target = soft_update(&self.actor, &self.actor_target, c.tau);
+            self.critics_target = soft_update(&self.critics, &self.critics_target, c.tau);
+        }
+        let actor_ms = if actor_loss.is_some() {
+            started.elapsed().as_secs_f64() * 1e3
+        } else {
+            0.0
+        };
+        UpdateStats {
+            critic_ms,
+            actor_ms,
+            critic_loss: stats_critic,
+            actor_loss,
+            mean_q,
+        }
+    }
+}
+
+/// Target policy smoothing: a' = clip(π'(s') + clip(ε, −c, c), −1, 1).
+pub fn smoothed_target_action(action: Tensor<2>, noise: Tensor<2>, noise_clip: f64) -> Tensor<2> {
+    (action + noise.clamp(-noise_clip, noise_clip)).clamp(-1.0, 1.0)
+}
+
+/// Clipped double-Q target: y = r + γ (1 − terminated) min(Q1', Q2').
+pub fn td_target(
+    reward: Tensor<2>,
+    terminated: Tensor<2>,
+    q1_next: Tensor<2>,
+    q2_next: Tensor<2>,
+    gamma: f64,
+) -> Tensor<2> {
+    let not_done = terminated.neg().add_scalar(1.0);
+    reward + not_done * q1_next.min_pair(q2_next) * gamma
+}
+
+fn scalar<const D: usize>(t: &Tensor<D>) -> f64 {
+    f64::from(t.clone().into_scalar::<f32>())
+}
+
+/// θ' ← τ θ + (1 − τ) θ'. The result starts as an inference copy of the
+/// online module, so BatchNorm running statistics follow the online ones.
+pub fn soft_update<M: Module>(online: &M, target: &M, tau: f64) -> M {
+    let mut old = Flatten(Vec::new());
+    target.visit(&mut old);
+    online.valid().map(&mut Blend {
+        old: old.0.into_iter(),
+        tau,
+    })
+}
+
+/// Every float parameter, flattened, in visiting order.
+struct Flatten(Vec<Tensor<1>>);
+
+impl ModuleVisitor for Flatten {
+    fn visit_float<const D: usize>(&mut self, param: &Param<Tensor<D>>) {
+        let t = param.val();
+        let n = t.shape().num_elements();
+        self.0.push(t.reshape([n]));
+    }
+}
+
+/// Blends each parameter with the target's old value.
+struct Blend {
+    old: std::vec::IntoIter<Tensor<1>>,
+    tau: f64,
+}
+
+impl ModuleMapper for Blend {
+    fn map_float<const D: usize>(&mut self, param: Param<Tensor<D>>) -> Param<Tensor<D>> {
+        let (id, online, mapper) = param.consume();
+        let old = self
+            .old
+            .next()
+            .expect("target and online modules have the same parameters")
+            .reshape(online.shape());
+        let blended = online * self.tau + old * (1.0 - self.tau);
+        Param::from_mapped_value(id, blended, mapper)
+    }
+}

@@ -1,0 +1,171 @@
+//! TD3's pieces against hand-computed values, and the update's schedule.
+
+use burn::module::Module;
+use burn::nn::{Linear, LinearConfig};
+use burn::tensor::{Device, Distribution, Tensor, TensorData};
+use tweezer_learner::td3::{Batch, Td3, Td3Config, smoothed_target_action, soft_update, td_target};
+
+fn values<const D: usize>(t: Tensor<D>) -> Vec<f32> {
+    t.into_data().try_to_vec::<f32>().unwrap()
+}
+
+fn column(v: &[f32], device: &Device) -> Tensor<2> {
+    Tensor::<2>::from_data(TensorData::new(v.to_vec(), [v.len(), 1]), device)
+}
+
+fn close(a: &[f32], b: &[f32]) {
+    assert_eq!(a.len(), b.len());
+    for (x, y) in a.iter().zip(b) {
+        assert!((x - y).abs() < 1e-6, "{a:?} vs {b:?}");
+    }
+}
+
+#[test]
+fn target_actions_are_smoothed_and_clipped() {
+    let device = Device::flex();
+    let action = Tensor::<2>::from_data(
+        TensorData::new(vec![0.9f32, -0.2, 0.0, -0.95], [2, 2]),
+        &device,
+    );
+    let noise = Tensor::<2>::from_data(
+        TensorData::new(vec![0.3f32, 0.7, -0.6, -0.1], [2, 2]),
+        &device,
+    );
+    // Noise clipped to ±0.5 first, then the sum to [-1, 1].
+    let got = values(smoothed_target_action(action, noise, 0.5));
+    close(&got, &[1.0, 0.3, -0.5, -1.0]);
+}
+
+#[test]
+fn td_targets_take_the_smaller_critic_and_stop_at_termination() {
+    let device = Device::flex();
+    let y = td_target(
+        column(&[1.0, -1.0, 1000.0], &device),
+        column(&[0.0, 0.0, 1.0], &device),
+        column(&[10.0, -5.0, 50.0], &device),
+        column(&[12.0, -7.0, 40.0], &device),
+        0.86,
+    );
+    close(&values(y), &[1.0 + 0.86 * 10.0, -1.0 + 0.86 * -7.0, 1000.0]);
+}
+
+#[test]
+fn soft_update_blends_every_parameter() {
+    let device = Device::flex();
+    let online: Linear = LinearConfig::new(3, 2).init(&device);
+    let target: Linear = LinearConfig::new(3, 2).init(&device);
+    let blended = soft_update(&online, &target, 0.25);
+    let w = |m: &Linear| values(m.weight.val());
+    let b = |m: &Linear| values(m.bias.as_ref().unwrap().val());
+    let expect = |on: Vec<f32>, old: Vec<f32>| -> Vec<f32> {
+        on.iter()
+            .zip(&old)
+            .map(|(o, t)| 0.25 * o + 0.75 * t)
+            .collect()
+    };
+    close(&w(&blended), &expect(w(&online), w(&target)));
+    close(&b(&blended), &expect(b(&online), b(&target)));
+    // τ = 1 copies; τ = 0 keeps.
+    close(&w(&soft_update(&online, &target, 1.0)), &w(&online));
+    close(&w(&soft_update(&online, &target, 0.0)), &w(&target));
+}
+
+fn batch(n: usize, device: &Device) -> Batch {
+    let image = || Tensor::<4>::random([n, 1, 64, 80], Distribution::Bernoulli(0.1), device);
+    let pair = || Tensor::<2>::random([n, 2], Distribution::Uniform(-1.0, 1.0), device);
+    Batch {
+        image: image(),
+        vector: pair(),
+        action: pair(),
+        reward: Tensor::<2>::random([n, 1], Distribution::Uniform(-1.0, 10.0), device),
+        terminated: Tensor::<2>::zeros([n, 1], device),
+        next_image: image(),
+        next_vector: pair(),
+    }
+}
+
+#[test]
+fn the_actor_updates_every_second_step_and_losses_are_finite() {
+    let device = Device::flex().autodiff();
+    let mut td3 = Td3::new(Td3Config::default(), 64, 80, &device).unwrap();
+    let probe = batch(4, &device);
+    let act = |td3: &Td3| {
+        values(
+            td3.policy()
+                .forward(probe.image.clone().valid(), probe.vector.clone().valid()),
+        )
+    };
+    let a0 = act(&td3);
+    let s1 = td3.update(batch(8, &device));
+    assert!(s1.critic_loss.is_finite() && s1.mean_q.is_finite());
+    assert_eq!(s1.actor_loss, None);
+    assert_eq!(act(&td3), a0, "the actor must wait for the second update");
+    let s2 = td3.update(batch(8, &device));
+    assert!(s2.actor_loss.is_some_and(f64::is_finite));
+    assert_ne!(act(&td3), a0, "the second update trains the actor");
+    assert_eq!(td3.updates(), 2);
+}
+
+#[test]
+fn the_bench_measures_a_small_configuration() {
+    let env = tweezer_gym::EnvConfig {
+        image: tweezer_gym::ImageConfig {
+            width: 80,
+            height: 64,
+        },
+        ..tweezer_gym::EnvConfig::default()
+    };
+    let report = tweezer_learner::bench::run(&env, 2_000, 2, &Device::flex()).unwrap();
+    assert_eq!(report.updates_timed, 2);
+    for v in [
+        report.update_ms_mean,
+        report.critic_step_ms,
+        report.actor_step_ms,
+        report.actor_infer_ms_batch1,
+        report.actor_infer_ms_batch16,
+    ] {
+        assert!(v > 0.0 && v.is_finite(), "{report:?}");
+    }
+    assert!(
+        report.replay_bytes_per_transition > 40.0 && report.replay_bytes_per_transition < 500.0
+    );
+    assert!(!report.missing.is_empty());
+}
+
+#[test]
+fn bad_hyper_parameters_are_named() {
+    let device = Device::flex().autodiff();
+    for (config, field) in [
+        (
+            Td3Config {
+                gamma: 1.5,
+                ..Td3Config::default()
+            },
+            "td3.gamma",
+        ),
+        (
+            Td3Config {
+                policy_delay: 0,
+                ..Td3Config::default()
+            },
+            "td3.policy_delay",
+        ),
+        (
+            Td3Config {
+                actor_lr: f64::NAN,
+                ..Td3Config::default()
+            },
+            "td3.actor_lr",
+        ),
+        (
+            Td3Config {
+                noise_clip: -1.0,
+                ..Td3Config::default()
+            },
+            "td3.noise_clip",
+        ),
+    ] {
+        let err = Td3::new(config, 64, 80, &device).err().expect("refused");
+        assert!(err.to_string().contains(field), "{err}");
+    }
+}
