@@ -3,5 +3,6 @@
 
 pub mod batch;
 pub mod bench;
+pub mod limiter;
 pub mod replay;
 pub mod td3;

@@ -1,0 +1,145 @@
+//! The rate limiter: warm-up, the ratio, back-pressure, restore, and real
+//! threads with 1 and 8 producers.
+
+use std::sync::Arc;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::time::{Duration, Instant};
+use tweezer_learner::limiter::{Limiter, LimiterConfig, LimiterState, SharedLimiter};
+
+fn config(ratio: f64, min_size: usize, slack: f64) -> LimiterConfig {
+    LimiterConfig {
+        updates_per_insert: ratio,
+        min_size,
+        slack,
+    }
+}
+
+#[test]
+fn learning_waits_for_the_minimum_then_follows_the_ratio() {
+    let mut l = Limiter::new(config(1.0, 100, 10.0));
+    for len in 0..100 {
+        assert!(l.can_insert(1, len));
+        assert!(!l.can_update(len));
+        assert_eq!(l.state(len), LimiterState::WarmingUp);
+        l.inserted(1);
+    }
+    // At the minimum nothing is owed yet.
+    assert!(!l.can_update(100));
+    assert_eq!(l.state(100), LimiterState::WaitingForData);
+    l.inserted(3);
+    for _ in 0..3 {
+        assert!(l.can_update(103));
+        l.updated();
+    }
+    assert!(!l.can_update(103), "the learner never runs ahead");
+    // Inserts run ahead by at most the slack.
+    l.inserted(10);
+    assert!(!l.can_insert(1, 113));
+    assert_eq!(l.state(113), LimiterState::BlockingInserts);
+    l.updated();
+    assert!(l.can_insert(1, 113));
+}
+
+#[test]
+fn fractional_ratios_and_big_batches_never_deadlock() {
+    let mut l = Limiter::new(config(0.25, 10, 4.0));
+    l.inserted(10);
+    l.inserted(7); // owes 1.75 updates
+    assert!(l.can_update(17));
+    l.updated(); // 0.75 owed: no update, but inserts must go on
+    assert!(!l.can_update(17));
+    assert!(
+        l.can_insert(1000, 17),
+        "a batch larger than the slack waits for nothing"
+    );
+}
+
+#[test]
+fn a_restored_limiter_cannot_block_both_sides() {
+    let mut l = Limiter::new(config(1.0, 100, 10.0));
+    l.inserted(5_000);
+    // Restored counters say 4,900 updates are owed, but the replay came back
+    // empty: rebasing makes the counts agree with the replay.
+    l.rebase(0);
+    assert!(l.can_insert(50, 0));
+    for len in 1..=150 {
+        l.inserted(1);
+        assert!(
+            l.can_insert(1, len) || l.can_update(len),
+            "deadlock at {len}"
+        );
+    }
+    l.rebase(150);
+    assert!(l.can_insert(1, 150));
+}
+
+#[test]
+fn bad_settings_are_named() {
+    for (c, field) in [
+        (config(0.0, 1, 1.0), "limiter.updates_per_insert"),
+        (config(1.0, 0, 1.0), "limiter.min_size"),
+        (config(1.0, 1, 0.5), "limiter.slack"),
+    ] {
+        let err = c.validate().unwrap_err().to_string();
+        assert!(err.contains(field), "{err}");
+    }
+}
+
+/// Producers insert batches through the shared limiter while one learner
+/// thread updates; the ratio must hold throughout and everything finish.
+fn run_with_producers(producers: u64) {
+    let (batch, batches, min_size, slack) = (16u64, 40u64, 64usize, 32.0);
+    let limiter = Arc::new(SharedLimiter::new(
+        Limiter::new(config(1.0, min_size, slack)),
+        0,
+    ));
+    let total = Arc::new(AtomicU64::new(0));
+    let deadline = Instant::now() + Duration::from_secs(60);
+    let threads: Vec<_> = (0..producers)
+        .map(|_| {
+            let (limiter, total) = (limiter.clone(), total.clone());
+            std::thread::spawn(move || {
+                for _ in 0..batches {
+                    while !limiter.wait_to_insert(batch, Duration::from_millis(50)) {
+                        assert!(Instant::now() < deadline, "producer stuck");
+                    }
+                    let len = total.fetch_add(batch, Ordering::SeqCst) + batch;
+                    limiter.replay_len(len as usize);
+                }
+            })
+        })
+        .collect();
+    let owed = producers * batch * batches - min_size as u64;
+    let mut updates = 0;
+    while updates < owed {
+        assert!(
+            Instant::now() < deadline,
+            "learner stuck after {updates} updates"
+        );
+        if limiter.wait_to_update(Duration::from_millis(50)) {
+            limiter.updated();
+            updates += 1;
+            let (counts, _) = limiter.snapshot();
+            let credit =
+                counts.inserts.saturating_sub(min_size as u64) as f64 - counts.updates as f64;
+            assert!(credit >= 0.0, "the learner ran ahead: {counts:?}");
+            assert!(credit <= slack, "inserts ran too far ahead: {counts:?}");
+        }
+    }
+    for t in threads {
+        t.join().unwrap();
+    }
+    let (counts, _) = limiter.snapshot();
+    assert_eq!(counts.inserts, producers * batch * batches);
+    assert_eq!(counts.updates, owed);
+}
+
+#[test]
+fn one_producer() {
+    run_with_producers(1);
+}
+
+#[test]
+fn eight_producers() {
+    run_with_producers(8);
+}
