@@ -1,0 +1,315 @@
+//! Policy snapshots: the actor's weights (BatchNorm statistics included) in
+//! a safetensors file, which any safetensors reader opens, with metadata
+//! naming the architecture, resolution, version and training step, and a
+//! SHA-256 of the weights that loading verifies.
+
+use crate::actor::{Actor, ActorConfig};
+use crate::encoder::EncoderConfig;
+use burn::module::{Module, ModuleMapper, ModuleVisitor, Param};
+use burn::tensor::{Device, Tensor, TensorData};
+use safetensors::tensor::{Dtype, SafeTensors, TensorView};
+use sha2::{Digest, Sha256};
+use std::collections::{BTreeMap, HashMap};
+
+/// The architecture this crate's `Actor` is, as snapshots name it.
+pub const ARCHITECTURE: &str = "tweezer-paper-actor-v1";
+
+/// What a snapshot says about itself.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct SnapshotInfo {
+    /// Network architecture.
+    pub architecture: String,
+    /// Input image height.
+    pub height: usize,
+    /// Input image width.
+    pub width: usize,
+    /// Snapshot version (increases with every snapshot of a run).
+    pub version: u64,
+    /// Learner updates made when it was taken.
+    pub training_step: u64,
+}
+
+/// A snapshot that cannot be used.
+#[derive(Debug, thiserror::Error, PartialEq, Eq)]
+pub enum SnapshotError {
+    /// Not a readable safetensors file.
+    #[error("not a safetensors snapshot: {0}")]
+    Format(String),
+    /// A metadata field is missing or malformed.
+    #[error("snapshot metadata `{field}` is missing or malformed")]
+    Metadata {
+        /// The field.
+        field: &'static str,
+    },
+    /// The network is of another architecture.
+    #[error("snapshot holds a `{found}` network, expected `{expected}`")]
+    Architecture {
+        /// What we can load.
+        expected: String,
+        /// What the file holds.
+        found: String,
+    },
+    /// The network expects another image resolution.
+    #[error(
+        "snapshot expects {found_w}x{found_h} images, this process renders {expected_w}x{expected_h}"
+    )]
+    Resolution {
+        /// Our width.
+        expected_w: usize,
+        /// Our height.
+        expected_h: usize,
+        /// The snapshot's width.
+        found_w: usize,
+        /// The snapshot's height.
+        found_h: usize,
+    },
+    /// The weights do not match their checksum.
+    #[error("snapshot weights fail their checksum (expected {expected}, computed {computed})")]
+    Checksum {
+        /// Stored.
+        expected: String,
+        /// Computed.
+        computed: String,
+    },
+    /// A tensor the network needs is missing or has the wrong shape or type.
+    #[error("snapshot tensor `{name}`: {reason}")]
+    Tensor {
+        /// Its name.
+        name: String,
+        /// What is wrong.
+        reason: String,
+    },
+}
+
+/// Every float tensor of a module by its path (`encoder.conv1.weight`).
+#[derive(Default)]
+struct Named {
+    path: Vec<String>,
+    tensors: BTreeMap<String, (Vec<usize>, Vec<f32>)>,
+}
+
+impl ModuleVisitor for Named {
+    fn enter_module(&mut self, name: &str, _container: &str) {
+        self.path.push(name.to_string());
+    }
+
+    fn exit_module(&mut self, _name: &str, _container: &str) {
+        self.path.pop();
+    }
+
+    fn visit_float<const D: usize>(&mut self, param: &Param<Tensor<D>>) {
+        let tensor = param.val();
+        let shape = tensor.dims().to_vec();
+        let data = tensor
+            .into_data()
+            .convert::<f32>()
+            .try_to_vec::<f32>()
+            .expect("converted to f32");
+        self.tensors.insert(self.path.join("."), (shape, data));
+    }
+}
+
+fn digest(tensors: &BTreeMap<String, (Vec<usize>, Vec<f32>)>) -> String {
+    let mut hash = Sha256::new();
+    for (name, (shape, data)) in tensors {
+        hash.update(name.as_bytes());
+        for d in shape {
+            hash.update((*d as u64).to_le_bytes());
+        }
+        for v in data {
+            hash.update(v.to_le_bytes());
+        }
+    }
+    hash.finalize().iter().map(|b| format!("{b:02x}")).collect()
+}
+
+/// Writes `actor` and `info` as safetensors bytes.
+pub fn encode(actor: &Actor, info: &SnapshotInfo) -> Vec<u8> {
+    let mut named = Named::default();
+    actor.visit(&mut named);
+    let mut metadata = HashMap::new();
+    metadata.insert("format".to_string(), "tweezer-snapshot".to_string());
+    metadata.insert("architecture".to_string(), info.architecture.clone());
+    metadata.insert("height".to_string(), info.height.to_string());
+    metadata.insert("width".to_string(), info.width.to_string());
+    metadata.insert("version".to_string(), info.version.to_string());
+    metadata.insert("training_step".to_string(), info.training_step.to_string());
+    metadata.insert("weights_sha256".to_string(), digest(&named.tensors));
+    let bytes: Vec<(String, Vec<usize>, Vec<u8>)> = named
+        .tensors
+        .iter()
+        .map(|(name, (shape, data))| {
+            let raw = data.iter().flat_map(|v| v.to_le_bytes()).collect();
+            (name.clone(), shape.clone(), raw)
+        })
+        .collect();
+    let views = bytes.iter().map(|(name, shape, raw)| {
+        let view = TensorView::new(Dtype::F32, shape.clone(), raw).expect("shape matches data");
+        (name.as_str(), view)
+    });
+    safetensors::serialize(views, Some(metadata)).expect("f32 tensors serialise")
+}
+
+fn field<T: std::str::FromStr>(
+    metadata: &HashMap<String, String>,
+    field: &'static str,
+) -> Result<T, SnapshotError> {
+    metadata
+        .get(field)
+        .and_then(|v| v.parse().ok())
+        .ok_or(SnapshotError::Metadata { field })
+}
+
+/// Reads a snapshot's metadata without loading its weights.
+pub fn read_info(bytes: &[u8]) -> Result<SnapshotInfo, SnapshotError> {
+    let (_, header) =
+        SafeTensors::read_metadata(bytes).map_err(|e| SnapshotError::Format(e.to_string()))?;
+    let metadata = header.metadata().clone().unwrap_or_default();
+    if metadata.get("format").map(String::as_str) != Some("tweezer-snapshot") {
+        return Err(SnapshotError::Metadata { field: "format" });
+    }
+    Ok(SnapshotInfo {
+        architecture: field(&metadata, "architecture")?,
+        height: field(&metadata, "height")?,
+        width: field(&metadata, "width")?,
+        version: field(&metadata, "version")?,
+        training_step: field(&metadata, "training_step")?,
+    })
+}
+
+/// Replaces each parameter by the file's tensor of the same path, noting
+/// the first problem.
+struct Load<'a> {
+    path: Vec<String>,
+    tensors: &'a BTreeMap<String, (Vec<usize>, Vec<f32>)>,
+    device: Device,
+    loaded: usize,
+    error: Option<SnapshotError>,
+}
+
+impl ModuleMapper for Load<'_> {
+    fn enter_module(&mut self, name: &str, _container: &str) {
+        self.path.push(name.to_string());
+    }
+
+    fn exit_module(&mut self, _name: &str, _container: &str) {
+        self.path.pop();
+    }
+
+    fn map_float<const D: usize>(&mut self, param: Param<Tensor<D>>) -> Param<Tensor<D>> {
+        let name = self.path.join(".");
+        let (id, tensor, mapper) = param.consume();
+        let wanted = tensor.dims().to_vec();
+        let fail = |reason: String| SnapshotError::Tensor {
+            name: name.clone(),
+            reason,
+        };
+        let replacement = match self.tensors.get(&name) {
+            None => Err(fail("missing".into())),
+            Some((shape, _)) if *shape != wanted => Err(fail(format!(
+                "shape {shape:?}, the network needs {wanted:?}"
+            ))),
+            Some((shape, data)) => Ok(Tensor::<D>::from_data(
+                TensorData::new(data.clone(), shape.clone()),
+                &self.device,
+            )),
+        };
+        let tensor = match replacement {
+            Ok(t) => {
+                self.loaded += 1;
+                t
+            }
+            Err(e) => {
+                self.error.get_or_insert(e);
+                tensor
+            }
+        };
+        Param::from_mapped_value(id, tensor, mapper)
+    }
+}
+
+/// Loads a snapshot for images of `height` x `width` onto `device`,
+/// refusing other architectures, resolutions and corrupted weights.
+pub fn decode(
+    bytes: &[u8],
+    height: usize,
+    width: usize,
+    device: &Device,
+) -> Result<(Actor, SnapshotInfo), SnapshotError> {
+    let info = read_info(bytes)?;
+    if info.architecture != ARCHITECTURE {
+        return Err(SnapshotError::Architecture {
+            expected: ARCHITECTURE.into(),
+            found: info.architecture,
+        });
+    }
+    if (info.height, info.width) != (height, width) {
+        return Err(SnapshotError::Resolution {
+            expected_w: width,
+            expected_h: height,
+            found_w: info.width,
+            found_h: info.height,
+        });
+    }
+    let file = SafeTensors::deserialize(bytes).map_err(|e| SnapshotError::Format(e.to_string()))?;
+    let mut tensors = BTreeMap::new();
+    for (name, view) in file.tensors() {
+        if view.dtype() != Dtype::F32 {
+            return Err(SnapshotError::Tensor {
+                name,
+                reason: format!("dtype {:?}, expected F32", view.dtype()),
+            });
+        }
+        let data = view
+            .data()
+            .chunks_exact(4)
+            .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+            .collect();
+        tensors.insert(name, (view.shape().to_vec(), data));
+    }
+    let (_, header) =
+        SafeTensors::read_metadata(bytes).map_err(|e| SnapshotError::Format(e.to_string()))?;
+    let expected: String = field(
+        &header.metadata().clone().unwrap_or_default(),
+        "weights_sha256",
+    )?;
+    let computed = digest(&tensors);
+    if computed != expected {
+        return Err(SnapshotError::Checksum { expected, computed });
+    }
+    let fresh = ActorConfig::new(EncoderConfig::new(height, width)).init(device);
+    let mut load = Load {
+        path: Vec::new(),
+        tensors: &tensors,
+        device: device.clone(),
+        loaded: 0,
+        error: None,
+    };
+    let actor = fresh.map(&mut load);
+    if let Some(e) = load.error {
+        return Err(e);
+    }
+    if load.loaded != tensors.len() {
+        let mut known = Named::default();
+        actor.visit(&mut known);
+        let extra = tensors
+            .keys()
+            .find(|k| !known.tensors.contains_key(*k))
+            .cloned()
+            .unwrap_or_default();
+        return Err(SnapshotError::Tensor {
+            name: extra,
+            reason: "not part of the network".into(),
+        });
+    }
+    Ok((actor, info))
+}
+
+/// SHA-256 of a whole snapshot file, lowercase hex (what the learner
+/// announces when it serves the file).
+pub fn file_sha256(bytes: &[u8]) -> String {
+    Sha256::digest(bytes)
+        .iter()
+        .map(|b| format!("{b:02x}"))
+        .collect()
+}
