@@ -5,11 +5,15 @@
 mod bench;
 mod demo;
 
-use anyhow::bail;
+use anyhow::{Context, bail};
+use burn::tensor::Device;
 use clap::{Parser, Subcommand};
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::time::Duration;
-use tweezer_gym::{ConfigArgs, EvalSummary, Greedy, Policy, Seeds, UniformRandom, evaluate};
+use tweezer_gym::{
+    ConfigArgs, EnvConfig, EvalSummary, Greedy, Policy, Seeds, UniformRandom, evaluate,
+};
+use tweezer_nets::NetworkPolicy;
 
 /// Tweezer RL actor: steps virtual optical-tweezers environments.
 #[derive(Parser)]
@@ -25,7 +29,8 @@ struct Cli {
 enum Command {
     /// Evaluate a policy over a list of episode seeds.
     Eval {
-        /// `greedy` (straight at the target) or `random` (uniform actions).
+        /// `greedy` (straight at the target), `random` (uniform actions), or
+        /// the path of a policy snapshot (`.safetensors`).
         #[arg(long, default_value = "greedy")]
         policy: String,
         /// Episode seeds: `0..1000`, `5..=9`, `1,2,3`.
@@ -63,12 +68,20 @@ enum Command {
     },
 }
 
-fn policy_named(name: &str) -> anyhow::Result<Box<dyn Policy>> {
+/// `greedy`, `random`, or the path of a snapshot file.
+fn policy_named(name: &str, env: &EnvConfig) -> anyhow::Result<Box<dyn Policy>> {
     match name {
         "greedy" => Ok(Box::new(Greedy)),
         "random" => Ok(Box::new(UniformRandom::new(0))),
+        path if Path::new(path).is_file() => {
+            let bytes =
+                std::fs::read(path).with_context(|| format!("cannot read snapshot {path}"))?;
+            let (policy, _) = NetworkPolicy::from_snapshot(&bytes, env, &Device::flex())
+                .with_context(|| format!("cannot use snapshot {path}"))?;
+            Ok(Box::new(policy))
+        }
         other => bail!(
-            "unknown policy `{other}`: use `greedy` or `random` (trained snapshots are not loadable yet)"
+            "unknown policy `{other}`: use `greedy`, `random`, or the path of a snapshot file"
         ),
     }
 }
@@ -97,7 +110,7 @@ fn main() -> anyhow::Result<()> {
             batch,
             json,
         } => {
-            let mut policy = policy_named(&policy)?;
+            let mut policy = policy_named(&policy, &config.env)?;
             let episodes = evaluate(&config.env, policy.as_mut(), &seeds.0, batch)?;
             print_summary(&EvalSummary::of(&episodes), json)?;
         }

@@ -4,7 +4,7 @@ use serde_json::Value;
 use tweezer_system_tests::{run, stderr_of_failure, stdout_of};
 
 fn actor(args: &[&str]) -> std::process::Output {
-    run("tweezer-actor", "actor", args)
+    run("actor", args)
 }
 
 fn json(args: &[&str]) -> Value {

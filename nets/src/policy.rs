@@ -1,0 +1,73 @@
+//! A network as a `gym::Policy`: observations are rendered by the shared
+//! renderer into one batch and the actor runs once per call.
+
+use crate::actor::Actor;
+use crate::snapshot::{SnapshotError, SnapshotInfo, decode};
+use burn::tensor::{Device, Tensor, TensorData};
+use tweezer_gym::{Action, EnvConfig, Observation, Policy, Renderer};
+
+/// The actor network choosing actions for batches of observations, on a
+/// device without autodiff (BatchNorm uses its running statistics).
+#[derive(Debug)]
+pub struct NetworkPolicy {
+    actor: Actor,
+    renderer: Renderer,
+    device: Device,
+}
+
+impl NetworkPolicy {
+    /// A policy from an actor and the renderer of its input resolution.
+    pub fn new(actor: Actor, renderer: Renderer, device: Device) -> Self {
+        Self {
+            actor,
+            renderer,
+            device,
+        }
+    }
+
+    /// Loads a snapshot for the environment's image resolution.
+    pub fn from_snapshot(
+        bytes: &[u8],
+        env: &EnvConfig,
+        device: &Device,
+    ) -> Result<(Self, SnapshotInfo), SnapshotError> {
+        let renderer =
+            Renderer::for_config(env).map_err(|e| SnapshotError::Format(e.to_string()))?;
+        let (actor, info) = decode(bytes, renderer.height(), renderer.width(), device)?;
+        Ok((Self::new(actor, renderer, device.clone()), info))
+    }
+}
+
+impl Policy for NetworkPolicy {
+    /// A network that outputs NaN (broken weights) stands still rather than
+    /// driving the stage anywhere.
+    fn act(&mut self, observations: &[&Observation], actions: &mut [Action]) {
+        let n = observations.len();
+        if n == 0 {
+            return;
+        }
+        let (h, w, p) = (
+            self.renderer.height(),
+            self.renderer.width(),
+            self.renderer.pixels(),
+        );
+        let mut pixels = vec![0f32; n * p];
+        for (slot, obs) in pixels.chunks_exact_mut(p).zip(observations) {
+            self.renderer
+                .render(&obs.centres, slot)
+                .expect("each slot is one image of the renderer's size");
+        }
+        let vectors: Vec<f32> = observations.iter().flat_map(|o| o.vector).collect();
+        let image = Tensor::<4>::from_data(TensorData::new(pixels, [n, 1, h, w]), &self.device);
+        let vector = Tensor::<2>::from_data(TensorData::new(vectors, [n, 2]), &self.device);
+        let out: Vec<f32> = self
+            .actor
+            .forward(image, vector)
+            .into_data()
+            .try_to_vec()
+            .expect("the actor outputs f32");
+        for (action, xy) in actions.iter_mut().zip(out.chunks_exact(2)) {
+            *action = Action::clipped(xy[0], xy[1]).unwrap_or(Action::ZERO);
+        }
+    }
+}
