@@ -1,19 +1,17 @@
 //! The policy network.
 
 use crate::encoder::{Encoder, EncoderConfig};
+use crate::head::{Head, HeadConfig};
 use burn::config::Config;
 use burn::module::Module;
-use burn::nn::{Linear, LinearConfig};
-use burn::tensor::activation::{relu, tanh};
+use burn::tensor::activation::tanh;
 use burn::tensor::{Device, Tensor};
 
 /// Image and target vector in, stage velocities in [-1, 1]² out.
 #[derive(Module, Debug)]
 pub struct Actor {
     encoder: Encoder,
-    fc1: Linear,
-    fc2: Linear,
-    out: Linear,
+    head: Head,
 }
 
 /// The actor's shape.
@@ -29,12 +27,11 @@ pub struct ActorConfig {
 impl ActorConfig {
     /// An actor with freshly initialised weights on `device`.
     pub fn init(&self, device: &Device) -> Actor {
-        let features = self.encoder.features;
         Actor {
             encoder: self.encoder.init(device),
-            fc1: LinearConfig::new(features + 2, self.hidden).init(device),
-            fc2: LinearConfig::new(self.hidden, self.hidden).init(device),
-            out: LinearConfig::new(self.hidden, 2).init(device),
+            head: HeadConfig::new(self.encoder.features + 2, 2)
+                .with_hidden(self.hidden)
+                .init(device),
         }
     }
 }
@@ -49,8 +46,6 @@ impl Actor {
     pub fn forward(&self, image: Tensor<4>, vector: Tensor<2>) -> Tensor<2> {
         let x = self.encoder.forward(image); // [batch, 512]
         let x = Tensor::cat(vec![x, vector], 1); // [batch, 514]
-        let x = relu(self.fc1.forward(x)); // [batch, 64]
-        let x = relu(self.fc2.forward(x)); // [batch, 64]
-        tanh(self.out.forward(x)) // [batch, 2]
+        tanh(self.head.forward(x)) // [batch, 2]
     }
 }

@@ -10,12 +10,14 @@
 mod actor;
 mod critic;
 mod encoder;
+mod head;
 mod policy;
 mod snapshot;
 
 pub use actor::{Actor, ActorConfig};
 pub use critic::{Critic, CriticConfig};
 pub use encoder::{Encoder, EncoderConfig};
+pub use head::{Head, HeadConfig};
 pub use policy::NetworkPolicy;
 pub use snapshot::{
     ARCHITECTURE, SnapshotError, SnapshotInfo, decode, encode, file_sha256, read_info,

@@ -92,8 +92,8 @@ fn files_name_every_tensor_by_its_module_path() {
         "encoder.norm1.running_mean",
         "encoder.norm3.running_var",
         "encoder.fc.weight",
-        "fc1.bias",
-        "out.weight",
+        "head.fc1.bias",
+        "head.out.weight",
     ] {
         assert!(names.contains(&expected), "{expected} not in {names:?}");
     }
