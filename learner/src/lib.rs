@@ -3,6 +3,8 @@
 
 pub mod batch;
 pub mod bench;
+pub mod ingest;
 pub mod limiter;
+pub mod loopback;
 pub mod replay;
 pub mod td3;

@@ -1,14 +1,15 @@
 //! The learner process. Today: the configuration check and the benchmark of
-//! the replay and TD3 update; the gRPC service comes with the rest of the
-//! learner issue.
+//! the replay, the TD3 update and gRPC ingest; `serve` comes with the rest
+//! of the learner issue.
 
 use anyhow::bail;
 use burn::tensor::Device;
 use clap::{Parser, Subcommand};
 use tweezer_gym::ConfigArgs;
 
-/// Tweezer RL learner. Replay and TD3 are built and benchmarked; the gRPC
-/// service that feeds them is not built yet.
+/// Tweezer RL learner. Replay, TD3, the rate limiter and the ingest service
+/// are built and benchmarked; `serve` (training behind the service) is not
+/// built yet.
 #[derive(Parser)]
 #[command(version, about)]
 struct Cli {
@@ -73,9 +74,10 @@ fn main() -> anyhow::Result<()> {
                     "replay                   {:.0} bytes/transition at {} transitions",
                     report.replay_bytes_per_transition, report.replay_capacity
                 );
-                for missing in &report.missing {
-                    println!("not measured: {missing}");
-                }
+                println!(
+                    "gRPC ingest, 8 streams   {:.0} transitions/s",
+                    report.ingest_transitions_per_sec
+                );
             }
         }
     }

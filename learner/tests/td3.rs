@@ -129,7 +129,7 @@ fn the_bench_measures_a_small_configuration() {
     assert!(
         report.replay_bytes_per_transition > 40.0 && report.replay_bytes_per_transition < 500.0
     );
-    assert!(!report.missing.is_empty());
+    assert!(report.ingest_transitions_per_sec > 0.0);
 }
 
 #[test]

@@ -1,0 +1,58 @@
+//! A learner service on a loopback port, and step batches to feed it: for
+//! the ingest benchmark and the tests, over real sockets.
+
+use crate::ingest::{Ingest, LearnerService};
+use std::net::SocketAddr;
+use std::sync::Arc;
+use tokio::net::TcpListener;
+use tokio_stream::wrappers::TcpListenerStream;
+use tweezer_gym::{Action, ConfigError, EnvConfig, UniformRandom, VecEnv};
+use tweezer_proto::pb;
+use tweezer_proto::pb::learner_server::LearnerServer;
+
+/// Serves `ingest` on an ephemeral loopback port; returns its address.
+pub async fn serve(ingest: Arc<Ingest>) -> std::io::Result<SocketAddr> {
+    let listener = TcpListener::bind("127.0.0.1:0").await?;
+    let addr = listener.local_addr()?;
+    tokio::spawn(
+        tonic::transport::Server::builder()
+            .add_service(LearnerServer::new(LearnerService::new(ingest)))
+            .serve_with_incoming(TcpListenerStream::new(listener)),
+    );
+    Ok(addr)
+}
+
+/// `count` batches of `size` consecutive random-policy steps from `envs`
+/// environments, as actor `actor` would send them.
+pub fn batches(
+    env: &EnvConfig,
+    actor: &str,
+    envs: usize,
+    count: usize,
+    size: usize,
+    seed: u64,
+) -> Result<Vec<pb::StepBatch>, ConfigError> {
+    let mut vec_env = VecEnv::new(env, envs, seed)?;
+    let mut policy = UniformRandom::new(seed);
+    let mut actions = vec![Action::ZERO; envs];
+    let mut steps = Vec::with_capacity(count * size);
+    while steps.len() < count * size {
+        for a in &mut actions {
+            *a = policy.sample();
+        }
+        vec_env.step(&actions).expect("one action per environment");
+        for (i, slot) in vec_env.slots().iter().enumerate() {
+            let record = slot.record(i as u32).expect("stepped");
+            steps.push(tweezer_proto::step_to_wire(&record));
+        }
+    }
+    steps.truncate(count * size);
+    let mut steps = steps.into_iter();
+    Ok((0..count)
+        .map(|sequence| pb::StepBatch {
+            actor_id: actor.to_string(),
+            sequence: sequence as u64,
+            steps: steps.by_ref().take(size).collect(),
+        })
+        .collect())
+}

@@ -1,0 +1,145 @@
+//! Actors' steps over real gRPC on loopback: acknowledgements, status,
+//! malformed batches refused without touching the replay, many streams.
+
+use std::sync::Arc;
+use tokio_stream::wrappers::ReceiverStream;
+use tonic::Code;
+use tweezer_gym::{EnvConfig, ObservationBounds};
+use tweezer_learner::ingest::Ingest;
+use tweezer_learner::loopback::{batches, serve};
+use tweezer_learner::replay::{Replay, ReplayConfig};
+use tweezer_proto::pb;
+use tweezer_proto::pb::learner_client::LearnerClient;
+
+fn ingest() -> Arc<Ingest> {
+    let replay = Replay::new(ReplayConfig {
+        capacity: 100_000,
+        ..ReplayConfig::default()
+    });
+    Arc::new(Ingest::new(
+        replay,
+        None,
+        ObservationBounds::for_config(&EnvConfig::default()),
+    ))
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn batches_are_acknowledged_in_order_and_counted() {
+    let ingest = ingest();
+    let addr = serve(ingest.clone()).await.unwrap();
+    let mut client = LearnerClient::connect(format!("http://{addr}"))
+        .await
+        .unwrap();
+    let sent = batches(&EnvConfig::default(), "actor-a", 4, 10, 32, 1).unwrap();
+    let (tx, rx) = tokio::sync::mpsc::channel(4);
+    let mut acks = client
+        .stream_steps(ReceiverStream::new(rx))
+        .await
+        .unwrap()
+        .into_inner();
+    for batch in sent {
+        let sequence = batch.sequence;
+        tx.send(batch).await.unwrap();
+        let ack = acks.message().await.unwrap().unwrap();
+        assert_eq!(ack.sequence, sequence);
+        assert!(ack.explore_uniformly);
+    }
+    let status = client
+        .get_status(pb::LearnerStatusRequest {})
+        .await
+        .unwrap()
+        .into_inner();
+    assert_eq!(status.connected_actors, 1);
+    // 320 steps from 4 environments: all but each environment's last are
+    // complete transitions (episode ends complete at once).
+    assert!(
+        status.buffer_size >= 316 && status.buffer_size <= 320,
+        "{status:?}"
+    );
+    assert_eq!(status.steps_inserted, status.buffer_size);
+    assert_eq!(status.buffer_capacity, 100_000);
+    drop(tx);
+    assert!(
+        acks.message().await.unwrap().is_none(),
+        "the stream ends with the actor's"
+    );
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn malformed_batches_are_refused_and_never_touch_the_replay() {
+    let ingest = ingest();
+    let addr = serve(ingest.clone()).await.unwrap();
+    let mut client = LearnerClient::connect(format!("http://{addr}"))
+        .await
+        .unwrap();
+    let good = batches(&EnvConfig::default(), "actor-b", 2, 3, 16, 2).unwrap();
+    let mut cases = Vec::new();
+    let mut nan = good[1].clone();
+    nan.steps[5].reward = f32::NAN;
+    cases.push((nan, "steps[5].reward"));
+    let mut odd = good[1].clone();
+    odd.steps[0].observation.as_mut().unwrap().centres.push(1.0);
+    cases.push((odd, "steps[0].observation.centres"));
+    let mut fast = good[1].clone();
+    fast.steps[3].action.as_mut().unwrap().x = 1.5;
+    cases.push((fast, "steps[3].action"));
+    let mut anonymous = good[1].clone();
+    anonymous.actor_id.clear();
+    cases.push((anonymous, "actor_id"));
+
+    for (i, (bad, field)) in cases.into_iter().enumerate() {
+        let (tx, rx) = tokio::sync::mpsc::channel(4);
+        let mut acks = client
+            .stream_steps(ReceiverStream::new(rx))
+            .await
+            .unwrap()
+            .into_inner();
+        let before = ingest.replay().inserted();
+        tx.send(good[0].clone()).await.unwrap();
+        acks.message().await.unwrap().unwrap();
+        let after_good = ingest.replay().inserted();
+        tx.send(bad).await.unwrap();
+        let status = acks.message().await.unwrap_err();
+        assert_eq!(status.code(), Code::InvalidArgument);
+        assert!(status.message().contains(field), "{}", status.message());
+        assert_eq!(
+            ingest.replay().inserted(),
+            after_good,
+            "the replay was touched"
+        );
+        assert!(after_good >= before);
+        assert_eq!(ingest.malformed(), i as u64 + 1);
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn eight_concurrent_streams_all_land() {
+    let ingest = ingest();
+    let addr = serve(ingest.clone()).await.unwrap();
+    let tasks: Vec<_> = (0..8)
+        .map(|k| {
+            tokio::spawn(async move {
+                let mut client = LearnerClient::connect(format!("http://{addr}"))
+                    .await
+                    .unwrap();
+                let sent =
+                    batches(&EnvConfig::default(), &format!("actor-{k}"), 2, 20, 25, k).unwrap();
+                let n = sent.len();
+                let stream = tokio_stream::iter(sent);
+                let mut acks = client.stream_steps(stream).await.unwrap().into_inner();
+                let mut count = 0;
+                while let Some(ack) = acks.message().await.unwrap() {
+                    assert_eq!(ack.sequence, count);
+                    count += 1;
+                }
+                assert_eq!(count as usize, n);
+            })
+        })
+        .collect();
+    for t in tasks {
+        t.await.unwrap();
+    }
+    // 8 actors x 500 steps, minus at most one pending step per environment.
+    let len = ingest.replay().len();
+    assert!((3_984..=4_000).contains(&len), "{len}");
+}
