@@ -23,20 +23,35 @@ fn ingest() -> Arc<Ingest> {
     ))
 }
 
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn batches_are_acknowledged_in_order_and_counted() {
+type Client = LearnerClient<tonic::transport::Channel>;
+type Sender = tokio::sync::mpsc::Sender<pb::StepBatch>;
+
+/// A learner on loopback and a client connected to it.
+async fn connected() -> (Arc<Ingest>, Client) {
     let ingest = ingest();
     let addr = serve(ingest.clone()).await.unwrap();
-    let mut client = LearnerClient::connect(format!("http://{addr}"))
+    let client = LearnerClient::connect(format!("http://{addr}"))
         .await
         .unwrap();
-    let sent = batches(&EnvConfig::default(), "actor-a", 4, 10, 32, 1).unwrap();
+    (ingest, client)
+}
+
+/// Opens a `StreamSteps` call fed through a channel.
+async fn open(client: &mut Client) -> (Sender, tonic::Streaming<pb::StepAck>) {
     let (tx, rx) = tokio::sync::mpsc::channel(4);
-    let mut acks = client
+    let acks = client
         .stream_steps(ReceiverStream::new(rx))
         .await
         .unwrap()
         .into_inner();
+    (tx, acks)
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn batches_are_acknowledged_in_order_and_counted() {
+    let (_ingest, mut client) = connected().await;
+    let sent = batches(&EnvConfig::default(), "actor-a", 4, 10, 32, 1).unwrap();
+    let (tx, mut acks) = open(&mut client).await;
     for batch in sent {
         let sequence = batch.sequence;
         tx.send(batch).await.unwrap();
@@ -67,11 +82,7 @@ async fn batches_are_acknowledged_in_order_and_counted() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn malformed_batches_are_refused_and_never_touch_the_replay() {
-    let ingest = ingest();
-    let addr = serve(ingest.clone()).await.unwrap();
-    let mut client = LearnerClient::connect(format!("http://{addr}"))
-        .await
-        .unwrap();
+    let (ingest, mut client) = connected().await;
     let good = batches(&EnvConfig::default(), "actor-b", 2, 3, 16, 2).unwrap();
     let mut cases = Vec::new();
     let mut nan = good[1].clone();
@@ -88,12 +99,7 @@ async fn malformed_batches_are_refused_and_never_touch_the_replay() {
     cases.push((anonymous, "actor_id"));
 
     for (i, (bad, field)) in cases.into_iter().enumerate() {
-        let (tx, rx) = tokio::sync::mpsc::channel(4);
-        let mut acks = client
-            .stream_steps(ReceiverStream::new(rx))
-            .await
-            .unwrap()
-            .into_inner();
+        let (tx, mut acks) = open(&mut client).await;
         let before = ingest.replay().inserted();
         tx.send(good[0].clone()).await.unwrap();
         acks.message().await.unwrap().unwrap();
