@@ -37,4 +37,4 @@ pub use seeds::{Seeds, SeedsError};
 pub use spheres::{FreeSphere, Motion};
 pub use step_record::{EndKind, EpisodeEnd, StepRecord};
 pub use trajectory::{RecordError, Trajectory, record};
-pub use vec_env::{ActionCountMismatch, EpisodeStats, Slot, VecEnv};
+pub use vec_env::{ActionCountMismatch, EpisodeStats, RandomSteps, Slot, VecEnv};

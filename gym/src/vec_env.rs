@@ -6,6 +6,7 @@ use crate::action::Action;
 use crate::config::{ConfigError, EnvConfig};
 use crate::env::{Env, Outcome, StepResult};
 use crate::observation::Observation;
+use crate::policy::UniformRandom;
 use crate::rng::SplitMix64;
 use crate::step_record::{EndKind, EpisodeEnd, StepRecord};
 use rayon::prelude::*;
@@ -194,5 +195,47 @@ impl VecEnv {
     /// The observations the next actions respond to.
     pub fn observations(&self) -> Vec<&Observation> {
         self.slots.iter().map(Slot::observation).collect()
+    }
+}
+
+/// Endless step records from `n` environments under uniformly random
+/// actions, slot by slot: data for benchmarks and tests of whatever
+/// consumes an actor's steps.
+#[derive(Debug)]
+pub struct RandomSteps {
+    envs: VecEnv,
+    policy: UniformRandom,
+    actions: Vec<Action>,
+    pending: std::vec::IntoIter<StepRecord>,
+}
+
+impl RandomSteps {
+    /// `n` environments seeded from `seed`, the actions too.
+    pub fn new(config: &EnvConfig, n: usize, seed: u64) -> Result<Self, ConfigError> {
+        Ok(Self {
+            envs: VecEnv::new(config, n, seed)?,
+            policy: UniformRandom::new(seed),
+            actions: vec![Action::ZERO; n],
+            pending: Vec::new().into_iter(),
+        })
+    }
+}
+
+impl Iterator for RandomSteps {
+    type Item = StepRecord;
+
+    fn next(&mut self) -> Option<StepRecord> {
+        if let Some(record) = self.pending.next() {
+            return Some(record);
+        }
+        for action in &mut self.actions {
+            *action = self.policy.sample();
+        }
+        self.envs.step(&self.actions).ok()?;
+        let records: Vec<StepRecord> = (self.envs.slots().iter().enumerate())
+            .filter_map(|(i, slot)| slot.record(i as u32))
+            .collect();
+        self.pending = records.into_iter();
+        self.pending.next()
     }
 }

@@ -9,9 +9,7 @@ use burn::tensor::{Device, Distribution, Tensor};
 use serde::Serialize;
 use std::sync::Arc;
 use std::time::Instant;
-use tweezer_gym::{
-    Action, ConfigError, EnvConfig, ObservationBounds, Renderer, SplitMix64, UniformRandom, VecEnv,
-};
+use tweezer_gym::{ConfigError, EnvConfig, ObservationBounds, RandomSteps, Renderer, SplitMix64};
 use tweezer_proto::pb;
 use tweezer_proto::pb::learner_client::LearnerClient;
 
@@ -54,21 +52,13 @@ fn filled_replay(env: &EnvConfig, capacity: usize) -> Result<Replay, ConfigError
         capacity,
         ..ReplayConfig::default()
     });
-    let n = 64;
-    let mut envs = VecEnv::new(env, n, 1)?;
-    let mut policy = UniformRandom::new(1);
-    let mut actions = vec![Action::ZERO; n];
-    while replay.len() < capacity {
-        for a in &mut actions {
-            *a = policy.sample();
+    for record in RandomSteps::new(env, 64, 1)? {
+        if replay.len() >= capacity {
+            break;
         }
-        envs.step(&actions).expect("one action per environment");
-        for (i, slot) in envs.slots().iter().enumerate() {
-            let record = slot.record(i as u32).expect("stepped");
-            replay
-                .insert(0, &record)
-                .expect("environment observations fit a record");
-        }
+        replay
+            .insert(0, &record)
+            .expect("environment observations fit a record");
     }
     Ok(replay)
 }

@@ -6,7 +6,7 @@ use std::net::SocketAddr;
 use std::sync::Arc;
 use tokio::net::TcpListener;
 use tokio_stream::wrappers::TcpListenerStream;
-use tweezer_gym::{Action, ConfigError, EnvConfig, UniformRandom, VecEnv};
+use tweezer_gym::{ConfigError, EnvConfig, RandomSteps};
 use tweezer_proto::pb;
 use tweezer_proto::pb::learner_server::LearnerServer;
 
@@ -32,22 +32,7 @@ pub fn batches(
     size: usize,
     seed: u64,
 ) -> Result<Vec<pb::StepBatch>, ConfigError> {
-    let mut vec_env = VecEnv::new(env, envs, seed)?;
-    let mut policy = UniformRandom::new(seed);
-    let mut actions = vec![Action::ZERO; envs];
-    let mut steps = Vec::with_capacity(count * size);
-    while steps.len() < count * size {
-        for a in &mut actions {
-            *a = policy.sample();
-        }
-        vec_env.step(&actions).expect("one action per environment");
-        for (i, slot) in vec_env.slots().iter().enumerate() {
-            let record = slot.record(i as u32).expect("stepped");
-            steps.push(tweezer_proto::step_to_wire(&record));
-        }
-    }
-    steps.truncate(count * size);
-    let mut steps = steps.into_iter();
+    let mut steps = RandomSteps::new(env, envs, seed)?.map(|r| tweezer_proto::step_to_wire(&r));
     Ok((0..count)
         .map(|sequence| pb::StepBatch {
             actor_id: actor.to_string(),

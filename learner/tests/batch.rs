@@ -1,7 +1,7 @@
 //! Sampled transitions become tensors whose images follow the renderer.
 
 use burn::tensor::Device;
-use tweezer_gym::{Action, EnvConfig, ImageConfig, Renderer, SplitMix64, UniformRandom, VecEnv};
+use tweezer_gym::{EnvConfig, ImageConfig, RandomSteps, Renderer, SplitMix64};
 use tweezer_learner::batch::to_tensors;
 use tweezer_learner::replay::{Replay, ReplayConfig};
 
@@ -19,17 +19,9 @@ fn sampled_batches_render_into_tensors() {
         capacity: 500,
         ..ReplayConfig::default()
     });
-    let mut envs = VecEnv::new(&config, 4, 2).unwrap();
-    let mut policy = UniformRandom::new(2);
-    let mut actions = [Action::ZERO; 4];
+    let mut steps = RandomSteps::new(&config, 4, 2).unwrap();
     while replay.len() < 500 {
-        for a in &mut actions {
-            *a = policy.sample();
-        }
-        envs.step(&actions).unwrap();
-        for (i, slot) in envs.slots().iter().enumerate() {
-            replay.insert(0, &slot.record(i as u32).unwrap()).unwrap();
-        }
+        replay.insert(0, &steps.next().unwrap()).unwrap();
     }
     let sampled = replay.sample(6, &mut SplitMix64::new(9)).unwrap();
     let device = Device::flex();

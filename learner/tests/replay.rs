@@ -2,8 +2,7 @@
 //! memory per transition.
 
 use tweezer_gym::{
-    Action, EndKind, EnvConfig, EpisodeEnd, Observation, SplitMix64, StepRecord, UniformRandom,
-    VecEnv,
+    Action, EndKind, EnvConfig, EpisodeEnd, Observation, RandomSteps, SplitMix64, StepRecord,
 };
 use tweezer_learner::replay::{Replay, ReplayConfig, ReplayError};
 
@@ -173,17 +172,9 @@ fn a_full_replay_of_real_observations_stays_under_500_bytes_per_transition() {
         ..ReplayConfig::default()
     });
     let config = EnvConfig::default();
-    let mut envs = VecEnv::new(&config, 16, 11).unwrap();
-    let mut policy = UniformRandom::new(3);
-    let mut actions = vec![Action::ZERO; 16];
+    let mut steps = RandomSteps::new(&config, 16, 11).unwrap();
     while replay.inserted() < capacity as u64 + 5_000 {
-        for a in &mut actions {
-            *a = policy.sample();
-        }
-        envs.step(&actions).unwrap();
-        for (i, slot) in envs.slots().iter().enumerate() {
-            replay.insert(0, &slot.record(i as u32).unwrap()).unwrap();
-        }
+        replay.insert(0, &steps.next().unwrap()).unwrap();
     }
     assert_eq!(replay.len(), capacity);
     let per_transition = replay.bytes() as f64 / capacity as f64;
