@@ -11,7 +11,7 @@ use clap::{Parser, Subcommand};
 use std::path::{Path, PathBuf};
 use std::time::Duration;
 use tweezer_gym::{
-    ConfigArgs, EnvConfig, EvalSummary, Greedy, Policy, Seeds, UniformRandom, evaluate,
+    ConfigArgs, EnvConfig, EvalSummary, Greedy, Policy, Renderer, Seeds, UniformRandom, evaluate,
 };
 use tweezer_nets::NetworkPolicy;
 
@@ -76,7 +76,8 @@ fn policy_named(name: &str, env: &EnvConfig) -> anyhow::Result<Box<dyn Policy>> 
         path if Path::new(path).is_file() => {
             let bytes =
                 std::fs::read(path).with_context(|| format!("cannot read snapshot {path}"))?;
-            let (policy, _) = NetworkPolicy::from_snapshot(&bytes, env, &Device::flex())
+            let renderer = Renderer::for_config(env)?;
+            let (policy, _) = NetworkPolicy::from_snapshot(&bytes, renderer, &Device::flex())
                 .with_context(|| format!("cannot use snapshot {path}"))?;
             Ok(Box::new(policy))
         }

@@ -5,19 +5,13 @@ use crate::replay::SampledBatch;
 use crate::td3::Batch;
 use burn::tensor::{Device, Tensor, TensorData};
 use tweezer_gym::Renderer;
+use tweezer_nets::render_images;
 
 /// Renders every observation of `sampled` and moves the batch to `device`.
 pub fn to_tensors(sampled: &SampledBatch, renderer: &Renderer, device: &Device) -> Batch {
     let n = sampled.rewards.len();
-    let (h, w) = (renderer.height(), renderer.width());
     let images = |centres: &[Vec<[f32; 2]>]| {
-        let mut pixels = vec![0f32; n * renderer.pixels()];
-        for (slot, c) in pixels.chunks_exact_mut(renderer.pixels()).zip(centres) {
-            renderer
-                .render(c, slot)
-                .expect("each slot is one image of the renderer's size");
-        }
-        Tensor::<4>::from_data(TensorData::new(pixels, [n, 1, h, w]), device)
+        render_images(renderer, centres.iter().map(Vec::as_slice), device)
     };
     let pairs = |v: &[f32]| Tensor::<2>::from_data(TensorData::new(v.to_vec(), [n, 2]), device);
     let column = |v: &[f32]| Tensor::<2>::from_data(TensorData::new(v.to_vec(), [n, 1]), device);

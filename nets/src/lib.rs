@@ -11,6 +11,7 @@ mod actor;
 mod critic;
 mod encoder;
 mod head;
+mod images;
 mod policy;
 mod snapshot;
 
@@ -18,6 +19,7 @@ pub use actor::{Actor, ActorConfig};
 pub use critic::{Critic, CriticConfig};
 pub use encoder::{Encoder, EncoderConfig};
 pub use head::{Head, HeadConfig};
+pub use images::render_images;
 pub use policy::NetworkPolicy;
 pub use snapshot::{
     ARCHITECTURE, SnapshotError, SnapshotInfo, decode, encode, file_sha256, read_info,

@@ -2,9 +2,10 @@
 //! renderer into one batch and the actor runs once per call.
 
 use crate::actor::Actor;
+use crate::images::render_images;
 use crate::snapshot::{SnapshotError, SnapshotInfo, decode};
 use burn::tensor::{Device, Tensor, TensorData};
-use tweezer_gym::{Action, EnvConfig, Observation, Policy, Renderer};
+use tweezer_gym::{Action, Observation, Policy, Renderer};
 
 /// The actor network choosing actions for batches of observations, on a
 /// device without autodiff (BatchNorm uses its running statistics).
@@ -25,14 +26,12 @@ impl NetworkPolicy {
         }
     }
 
-    /// Loads a snapshot for the environment's image resolution.
+    /// Loads a snapshot for the renderer's image resolution.
     pub fn from_snapshot(
         bytes: &[u8],
-        env: &EnvConfig,
+        renderer: Renderer,
         device: &Device,
     ) -> Result<(Self, SnapshotInfo), SnapshotError> {
-        let renderer =
-            Renderer::for_config(env).map_err(|e| SnapshotError::Format(e.to_string()))?;
         let (actor, info) = decode(bytes, renderer.height(), renderer.width(), device)?;
         Ok((Self::new(actor, renderer, device.clone()), info))
     }
@@ -46,19 +45,9 @@ impl Policy for NetworkPolicy {
         if n == 0 {
             return;
         }
-        let (h, w, p) = (
-            self.renderer.height(),
-            self.renderer.width(),
-            self.renderer.pixels(),
-        );
-        let mut pixels = vec![0f32; n * p];
-        for (slot, obs) in pixels.chunks_exact_mut(p).zip(observations) {
-            self.renderer
-                .render(&obs.centres, slot)
-                .expect("each slot is one image of the renderer's size");
-        }
         let vectors: Vec<f32> = observations.iter().flat_map(|o| o.vector).collect();
-        let image = Tensor::<4>::from_data(TensorData::new(pixels, [n, 1, h, w]), &self.device);
+        let centres = observations.iter().map(|o| o.centres.as_slice());
+        let image = render_images(&self.renderer, centres, &self.device);
         let vector = Tensor::<2>::from_data(TensorData::new(vectors, [n, 2]), &self.device);
         let out: Vec<f32> = self
             .actor
