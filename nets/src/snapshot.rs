@@ -160,21 +160,30 @@ fn field<T: std::str::FromStr>(
         .ok_or(SnapshotError::Metadata { field })
 }
 
-/// Reads a snapshot's metadata without loading its weights.
-pub fn read_info(bytes: &[u8]) -> Result<SnapshotInfo, SnapshotError> {
+/// The snapshot's metadata table, checked to be ours.
+fn metadata(bytes: &[u8]) -> Result<HashMap<String, String>, SnapshotError> {
     let (_, header) =
         SafeTensors::read_metadata(bytes).map_err(|e| SnapshotError::Format(e.to_string()))?;
     let metadata = header.metadata().clone().unwrap_or_default();
     if metadata.get("format").map(String::as_str) != Some("tweezer-snapshot") {
         return Err(SnapshotError::Metadata { field: "format" });
     }
+    Ok(metadata)
+}
+
+fn info_of(metadata: &HashMap<String, String>) -> Result<SnapshotInfo, SnapshotError> {
     Ok(SnapshotInfo {
-        architecture: field(&metadata, "architecture")?,
-        height: field(&metadata, "height")?,
-        width: field(&metadata, "width")?,
-        version: field(&metadata, "version")?,
-        training_step: field(&metadata, "training_step")?,
+        architecture: field(metadata, "architecture")?,
+        height: field(metadata, "height")?,
+        width: field(metadata, "width")?,
+        version: field(metadata, "version")?,
+        training_step: field(metadata, "training_step")?,
     })
+}
+
+/// Reads a snapshot's metadata without loading its weights.
+pub fn read_info(bytes: &[u8]) -> Result<SnapshotInfo, SnapshotError> {
+    info_of(&metadata(bytes)?)
 }
 
 /// Replaces each parameter by the file's tensor of the same path, noting
@@ -236,7 +245,8 @@ pub fn decode(
     width: usize,
     device: &Device,
 ) -> Result<(Actor, SnapshotInfo), SnapshotError> {
-    let info = read_info(bytes)?;
+    let metadata = metadata(bytes)?;
+    let info = info_of(&metadata)?;
     if info.architecture != ARCHITECTURE {
         return Err(SnapshotError::Architecture {
             expected: ARCHITECTURE.into(),
@@ -267,12 +277,7 @@ pub fn decode(
             .collect();
         tensors.insert(name, (view.shape().to_vec(), data));
     }
-    let (_, header) =
-        SafeTensors::read_metadata(bytes).map_err(|e| SnapshotError::Format(e.to_string()))?;
-    let expected: String = field(
-        &header.metadata().clone().unwrap_or_default(),
-        "weights_sha256",
-    )?;
+    let expected: String = field(&metadata, "weights_sha256")?;
     let computed = digest(&tensors);
     if computed != expected {
         return Err(SnapshotError::Checksum { expected, computed });
