@@ -27,6 +27,11 @@ impl SplitMix64 {
         Self { state: seed }
     }
 
+    /// The state: `SplitMix64::new(state)` continues this stream.
+    pub fn state(&self) -> u64 {
+        self.state
+    }
+
     /// A stream for the part of `seed` named by `tag`; different tags give
     /// unrelated streams.
     pub fn derived(seed: u64, tag: u64) -> Self {

@@ -1,6 +1,7 @@
 //! One environment step as an actor reports it to the learner.
 
 use crate::action::Action;
+use crate::env::Outcome;
 use crate::observation::Observation;
 
 /// One step of one environment. The transition of step `t` is
@@ -28,29 +29,20 @@ pub struct StepRecord {
 /// How a step ended its episode.
 #[derive(Clone, Debug, PartialEq)]
 pub struct EpisodeEnd {
-    /// Terminated (success or collision) or truncated (time limit).
-    pub kind: EndKind,
+    /// Success or collision (terminated), or timeout (truncated).
+    pub outcome: Outcome,
     /// The observation after the step.
     pub final_observation: Observation,
-}
-
-/// Gymnasium's two ways for an episode to end.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum EndKind {
-    /// Success or collision: the episode's value ends here.
-    Terminated,
-    /// The time limit: the episode was cut short, its value goes on.
-    Truncated,
 }
 
 impl StepRecord {
     /// The step ended the episode in success or collision.
     pub fn terminated(&self) -> bool {
-        matches!(&self.end, Some(e) if e.kind == EndKind::Terminated)
+        matches!(&self.end, Some(e) if matches!(e.outcome, Outcome::Success | Outcome::Collision))
     }
 
     /// The step hit the time limit.
     pub fn truncated(&self) -> bool {
-        matches!(&self.end, Some(e) if e.kind == EndKind::Truncated)
+        matches!(&self.end, Some(e) if e.outcome == Outcome::Timeout)
     }
 }

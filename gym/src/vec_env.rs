@@ -8,7 +8,7 @@ use crate::env::{Env, Outcome, StepResult};
 use crate::observation::Observation;
 use crate::policy::UniformRandom;
 use crate::rng::SplitMix64;
-use crate::step_record::{EndKind, EpisodeEnd, StepRecord};
+use crate::step_record::{EpisodeEnd, StepRecord};
 use rayon::prelude::*;
 
 const SLOT_TAG: u64 = 0x5107_0000_0000;
@@ -108,12 +108,8 @@ impl Slot {
             observation: self.observed.clone(),
             action: self.action,
             reward: last.reward as f32,
-            end: self.finished.map(|_| EpisodeEnd {
-                kind: if last.terminated {
-                    EndKind::Terminated
-                } else {
-                    EndKind::Truncated
-                },
+            end: self.finished.map(|stats| EpisodeEnd {
+                outcome: stats.outcome,
                 final_observation: self.final_observation.clone(),
             }),
         })

@@ -1,9 +1,9 @@
 //! `learner bench`: how fast the learner's parts run on this machine.
 
 use crate::batch::to_tensors;
-use crate::ingest::Ingest;
 use crate::loopback::{batches, serve};
 use crate::replay::{Replay, ReplayConfig};
+use crate::shared::Shared;
 use crate::td3::{Td3, Td3Config};
 use burn::tensor::{Device, Distribution, Tensor};
 use serde::Serialize;
@@ -75,7 +75,7 @@ fn ingest_rate(env: &EnvConfig) -> anyhow::Result<f64> {
         .enable_all()
         .build()?;
     runtime.block_on(async {
-        let ingest = Arc::new(Ingest::new(
+        let ingest = Arc::new(Shared::new(
             Replay::new(ReplayConfig::default()),
             None,
             ObservationBounds::for_config(env),

@@ -1,10 +1,20 @@
-//! The learner: the replay table, TD3 and (with the learner issue's later
-//! parts) the gRPC service that feeds them.
+//! The learner: actors' steps arrive over gRPC into a compact FIFO replay,
+//! TD3 trains on uniformly sampled batches as a rate limiter allows, and
+//! policy snapshots are published by version; checkpoints make it resumable.
 
 pub mod batch;
 pub mod bench;
-pub mod ingest;
+pub mod checkpoint;
+pub mod config;
+pub mod episodes;
+pub mod fsio;
 pub mod limiter;
 pub mod loopback;
+pub mod metrics;
 pub mod replay;
+pub mod serve;
+pub mod service;
+pub mod shared;
+pub mod snapshots;
 pub mod td3;
+pub mod training;

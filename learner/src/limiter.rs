@@ -73,6 +73,18 @@ pub enum LimiterState {
     WaitingForData,
 }
 
+impl LimiterState {
+    /// How status shows it.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Self::WarmingUp => "warming up",
+            Self::Flowing => "flowing",
+            Self::BlockingInserts => "blocking inserts",
+            Self::WaitingForData => "waiting for data",
+        }
+    }
+}
+
 /// The limiter's counters.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
 pub struct LimiterCounts {

@@ -1,7 +1,8 @@
 //! A learner service on a loopback port, and step batches to feed it: for
 //! the ingest benchmark and the tests, over real sockets.
 
-use crate::ingest::{Ingest, LearnerService};
+use crate::service::LearnerService;
+use crate::shared::Shared;
 use std::net::SocketAddr;
 use std::sync::Arc;
 use tokio::net::TcpListener;
@@ -10,13 +11,13 @@ use tweezer_gym::{ConfigError, EnvConfig, RandomSteps};
 use tweezer_proto::pb;
 use tweezer_proto::pb::learner_server::LearnerServer;
 
-/// Serves `ingest` on an ephemeral loopback port; returns its address.
-pub async fn serve(ingest: Arc<Ingest>) -> std::io::Result<SocketAddr> {
+/// Serves `shared` on an ephemeral loopback port; returns its address.
+pub async fn serve(shared: Arc<Shared>) -> std::io::Result<SocketAddr> {
     let listener = TcpListener::bind("127.0.0.1:0").await?;
     let addr = listener.local_addr()?;
     tokio::spawn(
         tonic::transport::Server::builder()
-            .add_service(LearnerServer::new(LearnerService::new(ingest)))
+            .add_service(LearnerServer::new(LearnerService::new(shared)))
             .serve_with_incoming(TcpListenerStream::new(listener)),
     );
     Ok(addr)

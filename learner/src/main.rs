@@ -1,26 +1,46 @@
-//! The learner process. Today: the configuration check and the benchmark of
-//! the replay, the TD3 update and gRPC ingest; `serve` comes with the rest
-//! of the learner issue.
+//! The learner process: `serve` trains behind the gRPC service, `config`
+//! prints the effective configuration, `bench` measures the parts.
 
 use anyhow::bail;
 use burn::tensor::Device;
 use clap::{Parser, Subcommand};
-use tweezer_gym::ConfigArgs;
+use std::net::SocketAddr;
+use std::path::PathBuf;
+use tracing_subscriber::EnvFilter;
+use tweezer_learner::config::LearnerFile;
+use tweezer_learner::serve::{CONFIG, serve};
 
-/// Tweezer RL learner. Replay, TD3, the rate limiter and the ingest service
-/// are built and benchmarked; `serve` (training behind the service) is not
-/// built yet.
+/// Tweezer RL learner: FIFO replay, TD3 in Burn, versioned policy snapshots
+/// over gRPC.
 #[derive(Parser)]
 #[command(version, about)]
 struct Cli {
-    #[command(flatten)]
-    config: ConfigArgs,
+    /// TOML config file: `[env]` and `[learner]` tables over SPEC defaults.
+    #[arg(long, global = true, value_name = "FILE")]
+    config: Option<PathBuf>,
+    /// Log as JSON lines (for log collectors) instead of text.
+    #[arg(long, global = true)]
+    log_json: bool,
     #[command(subcommand)]
     command: Command,
 }
 
 #[derive(Subcommand)]
 enum Command {
+    /// Serve actors and train until SIGINT or SIGTERM, then write a final
+    /// checkpoint.
+    Serve {
+        /// Continue the run in DIR from its newest valid checkpoint (its
+        /// config.toml unless --config is given).
+        #[arg(long, value_name = "DIR")]
+        resume: Option<PathBuf>,
+        /// Listen here instead of `learner.listen` (port 0: any free port).
+        #[arg(long, value_name = "ADDR")]
+        listen: Option<SocketAddr>,
+        /// Write the run here instead of `learner.run_dir`.
+        #[arg(long, value_name = "DIR", conflicts_with = "resume")]
+        run_dir: Option<PathBuf>,
+    },
     /// Print the effective configuration (the file over SPEC defaults) as TOML.
     Config,
     /// Measure TD3 updates, inference and replay memory on the CPU.
@@ -39,9 +59,28 @@ enum Command {
 
 fn main() -> anyhow::Result<()> {
     let cli = Cli::parse();
-    let config = cli.config.load()?;
+    init_logging(cli.log_json);
     match cli.command {
-        Command::Config => print!("{}", config.to_toml()),
+        Command::Serve {
+            resume,
+            listen,
+            run_dir,
+        } => {
+            let path = match (&cli.config, &resume) {
+                (Some(path), _) => Some(path.clone()),
+                (None, Some(dir)) => Some(dir.join(CONFIG)),
+                (None, None) => None,
+            };
+            let mut file = LearnerFile::load(path.as_deref())?;
+            if let Some(dir) = resume.clone().or(run_dir) {
+                file.learner.run_dir = dir;
+            }
+            if let Some(addr) = listen {
+                file.learner.listen = addr;
+            }
+            serve(file, resume.is_some())?;
+        }
+        Command::Config => print!("{}", LearnerFile::load(cli.config.as_deref())?.to_toml()),
         Command::Bench {
             updates,
             replay_capacity,
@@ -50,6 +89,7 @@ fn main() -> anyhow::Result<()> {
             if replay_capacity == 0 {
                 bail!("--replay-capacity must be at least 1");
             }
+            let config = LearnerFile::load(cli.config.as_deref())?;
             let report = tweezer_learner::bench::run(
                 &config.env,
                 replay_capacity,
@@ -82,4 +122,17 @@ fn main() -> anyhow::Result<()> {
         }
     }
     Ok(())
+}
+
+/// Logs to stderr, filtered by `RUST_LOG` (default `info`).
+fn init_logging(json: bool) {
+    let filter = EnvFilter::try_from_default_env().unwrap_or_else(|_| EnvFilter::new("info"));
+    let builder = tracing_subscriber::fmt()
+        .with_env_filter(filter)
+        .with_writer(std::io::stderr);
+    if json {
+        builder.json().init();
+    } else {
+        builder.init();
+    }
 }

@@ -6,8 +6,9 @@
 
 use burn::module::{Module, ModuleMapper, ModuleVisitor, Param};
 use burn::nn::loss::{MseLoss, Reduction};
-use burn::optim::{AdamConfig, GradientsParams, ModuleOptimizer};
-use burn::tensor::{Device, Distribution, Tensor};
+use burn::optim::{AdamConfig, GradientsParams, ModuleOptimizer, OptimizerRecord};
+use burn::store::{ModuleRecord, RecordError};
+use burn::tensor::{Bytes, Device, Distribution, Tensor};
 use serde::{Deserialize, Serialize};
 use std::time::Instant;
 use tweezer_gym::ConfigError;
@@ -31,6 +32,17 @@ pub struct Td3Config {
     pub actor_lr: f64,
     /// Adam learning rate of the critics.
     pub critic_lr: f64,
+    /// Rewards are multiplied by this before they enter the TD target (the
+    /// optimal policy is unchanged; the critics' outputs shrink with it).
+    pub reward_scale: f64,
+    /// Adam's epsilon. PyTorch's 1e-8, not Burn's default 1e-5: an actor
+    /// whose tanh saturates gets gradients far below 1e-5, and Burn's
+    /// epsilon then all but stops it from ever leaving the corner.
+    pub adam_epsilon: f64,
+    /// Weight of the mean squared action in the actor's loss (as in
+    /// OpenAI's HER baseline); keeps the tanh out of saturation while the
+    /// critics are still wrong (0: the paper).
+    pub action_l2: f64,
 }
 
 impl Default for Td3Config {
@@ -43,6 +55,9 @@ impl Default for Td3Config {
             policy_delay: 2,
             actor_lr: 3e-4,
             critic_lr: 3e-4,
+            reward_scale: 1.0,
+            adam_epsilon: 1e-8,
+            action_l2: 0.0,
         }
     }
 }
@@ -59,6 +74,7 @@ impl Td3Config {
         let non_negative = [
             ("td3.policy_noise", self.policy_noise),
             ("td3.noise_clip", self.noise_clip),
+            ("td3.action_l2", self.action_l2),
         ];
         for (field, value) in non_negative {
             if !(value.is_finite() && value >= 0.0) {
@@ -71,6 +87,8 @@ impl Td3Config {
         for (field, value) in [
             ("td3.actor_lr", self.actor_lr),
             ("td3.critic_lr", self.critic_lr),
+            ("td3.reward_scale", self.reward_scale),
+            ("td3.adam_epsilon", self.adam_epsilon),
         ] {
             if !(value.is_finite() && value > 0.0) {
                 return Err(invalid(
@@ -84,6 +102,13 @@ impl Td3Config {
         }
         Ok(())
     }
+}
+
+/// Adam with the configured epsilon.
+fn adam(config: &Td3Config) -> ModuleOptimizer {
+    AdamConfig::new()
+        .with_epsilon(config.adam_epsilon as f32)
+        .init()
 }
 
 fn invalid(field: &str, reason: impl Into<String>) -> ConfigError {
@@ -167,8 +192,8 @@ impl Td3 {
             critics_target: critics.valid(),
             actor,
             critics,
-            actor_optim: AdamConfig::new().init(),
-            critic_optim: AdamConfig::new().init(),
+            actor_optim: adam(&config),
+            critic_optim: adam(&config),
             updates: 0,
             config,
         })
@@ -182,6 +207,59 @@ impl Td3 {
     /// Updates made so far.
     pub fn updates(&self) -> u64 {
         self.updates
+    }
+
+    /// The networks, targets and optimiser states as named burnpack byte
+    /// buffers, for a checkpoint.
+    pub fn save_state(&self) -> Result<Vec<(&'static str, Vec<u8>)>, RecordError> {
+        let module = |record: ModuleRecord| record.into_bytes().map(|b| b.to_vec());
+        Ok(vec![
+            ("actor", module(self.actor.clone().into_record())?),
+            ("critics", module(self.critics.clone().into_record())?),
+            (
+                "actor_target",
+                module(self.actor_target.clone().into_record())?,
+            ),
+            (
+                "critics_target",
+                module(self.critics_target.clone().into_record())?,
+            ),
+            ("actor_optim", self.actor_optim.into_bytes()?.to_vec()),
+            ("critic_optim", self.critic_optim.into_bytes()?.to_vec()),
+        ])
+    }
+
+    /// Restores what [`Self::save_state`] saved, `updates` updates in;
+    /// `part` finds a buffer by name. The networks must have the shapes the
+    /// state was saved with.
+    pub fn load_state<'a>(
+        &mut self,
+        part: impl Fn(&str) -> Option<&'a [u8]>,
+        updates: u64,
+    ) -> Result<(), RecordError> {
+        let bytes = |name: &str| {
+            part(name)
+                .map(|b| Bytes::from_bytes_vec(b.to_vec()))
+                .ok_or_else(|| RecordError::Io(format!("part `{name}` is missing")))
+        };
+        let module = |name: &str| ModuleRecord::from_bytes(bytes(name)?);
+        self.actor = self.actor.clone().try_load_record(module("actor")?)?;
+        self.critics = self.critics.clone().try_load_record(module("critics")?)?;
+        self.actor_target = self
+            .actor_target
+            .clone()
+            .try_load_record(module("actor_target")?)?;
+        self.critics_target = self
+            .critics_target
+            .clone()
+            .try_load_record(module("critics_target")?)?;
+        let optimiser = |name: &str| OptimizerRecord::from_bytes(bytes(name)?);
+        self.actor_optim = std::mem::replace(&mut self.actor_optim, adam(&self.config))
+            .load_record(optimiser("actor_optim")?);
+        self.critic_optim = std::mem::replace(&mut self.critic_optim, adam(&self.config))
+            .load_record(optimiser("critic_optim")?);
+        self.updates = updates;
+        Ok(())
     }
 
     /// One TD3 update on `batch`.
@@ -222,7 +300,7 @@ impl Td3 {
             .q2
             .forward(next_image, next_vector, next_action);
         let y = td_target(
-            reward.valid(),
+            reward.valid() * c.reward_scale,
             terminated.valid(),
             q1_next,
             q2_next,
@@ -255,8 +333,10 @@ impl Td3 {
         let started = Instant::now();
         let mut actor_loss = None;
         if self.updates.is_multiple_of(c.policy_delay) {
+            // Actor loss: −Q1(s, π(s)), plus the optional action penalty.
             let pi = self.actor.forward(image.clone(), vector.clone());
-            let loss = self.critics.q1.forward(image, vector, pi).mean().neg();
+            let penalty = pi.clone().powi_scalar(2).mean() * c.action_l2;
+            let loss = self.critics.q1.forward(image, vector, pi).mean().neg() + penalty;
             actor_loss = Some(scalar(&loss));
             let grads = GradientsParams::from_grads(loss.backward(), &self.actor);
             self.actor = self.actor_optim.step(c.actor_lr, self.actor.clone(), grads);

@@ -2,7 +2,7 @@
 //! memory per transition.
 
 use tweezer_gym::{
-    Action, EndKind, EnvConfig, EpisodeEnd, Observation, RandomSteps, SplitMix64, StepRecord,
+    Action, EnvConfig, EpisodeEnd, Observation, Outcome, RandomSteps, SplitMix64, StepRecord,
 };
 use tweezer_learner::replay::{Replay, ReplayConfig, ReplayError};
 
@@ -18,7 +18,7 @@ fn tag_of(vectors: &[f32], i: usize) -> f32 {
     (vectors[2 * i] * 1e6).round()
 }
 
-fn step(env: u32, episode: u64, t: u32, tag: f32, end: Option<EndKind>) -> StepRecord {
+fn step(env: u32, episode: u64, t: u32, tag: f32, end: Option<Outcome>) -> StepRecord {
     StepRecord {
         env,
         episode,
@@ -26,8 +26,8 @@ fn step(env: u32, episode: u64, t: u32, tag: f32, end: Option<EndKind>) -> StepR
         observation: obs(tag),
         action: Action::new(0.5, -0.5).unwrap(),
         reward: tag,
-        end: end.map(|kind| EpisodeEnd {
-            kind,
+        end: end.map(|outcome| EpisodeEnd {
+            outcome,
             final_observation: obs(tag + 1000.0),
         }),
     }
@@ -82,10 +82,10 @@ fn interleaved_environments_and_actors_link_to_their_own_successors() {
 fn episode_ends_use_the_final_observation_and_mark_termination() {
     let mut replay = small(100);
     replay
-        .insert(0, &step(0, 1, 0, 5.0, Some(EndKind::Terminated)))
+        .insert(0, &step(0, 1, 0, 5.0, Some(Outcome::Collision)))
         .unwrap();
     replay
-        .insert(0, &step(1, 2, 0, 6.0, Some(EndKind::Truncated)))
+        .insert(0, &step(1, 2, 0, 6.0, Some(Outcome::Timeout)))
         .unwrap();
     assert_eq!(replay.len(), 2);
     let batch = replay.sample(200, &mut SplitMix64::new(3)).unwrap();
@@ -140,7 +140,7 @@ fn sampling_is_uniform() {
     let mut replay = small(40);
     for t in 0..41u32 {
         // Episodes of 5 steps, so final-observation records are interleaved.
-        let end = (t % 5 == 4).then_some(EndKind::Truncated);
+        let end = (t % 5 == 4).then_some(Outcome::Timeout);
         replay
             .insert(0, &step(0, u64::from(t / 5), t % 5, t as f32, end))
             .unwrap();
@@ -183,4 +183,44 @@ fn a_full_replay_of_real_observations_stays_under_500_bytes_per_transition() {
         per_transition <= 500.0,
         "{per_transition} bytes per transition"
     );
+}
+
+#[test]
+fn a_replay_survives_encoding_and_corrupt_bytes_are_refused() {
+    let config = ReplayConfig {
+        capacity: 500,
+        ..ReplayConfig::default()
+    };
+    let mut replay = Replay::new(config.clone());
+    for record in RandomSteps::new(&EnvConfig::default(), 4, 9)
+        .unwrap()
+        .take(800)
+    {
+        replay.insert(1, &record).unwrap();
+    }
+    let bytes = replay.encode();
+    let mut back = Replay::decode(config.clone(), &bytes).unwrap();
+    assert_eq!(back.len(), replay.len());
+    assert_eq!(back.inserted(), replay.inserted());
+    let (mut a, mut b) = (SplitMix64::new(3), SplitMix64::new(3));
+    assert_eq!(
+        replay.sample(64, &mut a).unwrap(),
+        back.sample(64, &mut b).unwrap()
+    );
+    // Pending steps survive too: the next steps link to them.
+    let next: Vec<_> = RandomSteps::new(&EnvConfig::default(), 4, 9)
+        .unwrap()
+        .skip(800)
+        .take(8)
+        .collect();
+    for record in &next {
+        replay.insert(1, record).unwrap();
+        back.insert(1, record).unwrap();
+    }
+    assert_eq!(back.len(), replay.len());
+
+    assert!(Replay::decode(config.clone(), &bytes[..bytes.len() - 3]).is_err());
+    let mut scrambled = bytes.clone();
+    scrambled[16..24].copy_from_slice(&u64::MAX.to_le_bytes());
+    assert!(Replay::decode(config, &scrambled).is_err());
 }

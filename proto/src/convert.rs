@@ -2,9 +2,7 @@
 //! field, e.g. `steps[3].observation.centres: odd length 7`.
 
 use crate::pb;
-use tweezer_gym::{
-    Action, EndKind, EpisodeEnd, Observation, ObservationBounds, Outcome, StepRecord,
-};
+use tweezer_gym::{Action, EpisodeEnd, Observation, ObservationBounds, Outcome, StepRecord};
 
 /// A malformed message: which field, and what is wrong with it.
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
@@ -84,6 +82,21 @@ pub fn outcome_to_wire(outcome: Outcome) -> pb::Outcome {
     }
 }
 
+/// The outcome a step's end flags allow: `None` while the episode runs.
+fn end_outcome(wire: i32, terminated: bool, truncated: bool) -> Result<Option<Outcome>, String> {
+    let outcome = pb::Outcome::try_from(wire).map_err(|_| format!("unknown outcome {wire}"))?;
+    match (outcome, terminated, truncated) {
+        (pb::Outcome::Unspecified | pb::Outcome::Running, false, false) => Ok(None),
+        (pb::Outcome::Success, true, _) => Ok(Some(Outcome::Success)),
+        (pb::Outcome::Collision, true, _) => Ok(Some(Outcome::Collision)),
+        (pb::Outcome::Timeout, _, true) => Ok(Some(Outcome::Timeout)),
+        (outcome, terminated, truncated) => Err(format!(
+            "{} does not match terminated={terminated}, truncated={truncated}",
+            outcome.as_str_name()
+        )),
+    }
+}
+
 /// Decodes and validates one step; `field` names it in errors.
 pub fn step_from_wire(
     msg: &pb::Step,
@@ -103,15 +116,14 @@ pub fn step_from_wire(
         ));
     }
     let kind = match (msg.terminated, msg.truncated) {
-        (false, false) => None,
-        (true, false) => Some(EndKind::Terminated),
-        (false, true) => Some(EndKind::Truncated),
         (true, true) => {
             return Err(WireError::new(
                 &format!("{field}.truncated"),
                 "a step cannot be both terminated and truncated",
             ));
         }
+        (terminated, truncated) => end_outcome(msg.outcome, terminated, truncated)
+            .map_err(|reason| WireError::new(&format!("{field}.outcome"), reason))?,
     };
     let final_field = format!("{field}.final_observation");
     let end = match (kind, msg.final_observation.as_ref()) {
@@ -128,8 +140,8 @@ pub fn step_from_wire(
                 "missing on a step that ended its episode",
             ));
         }
-        (Some(kind), Some(last)) => Some(EpisodeEnd {
-            kind,
+        (Some(outcome), Some(last)) => Some(EpisodeEnd {
+            outcome,
             final_observation: observation_from_wire(last, bounds, &final_field)?,
         }),
     };
@@ -159,6 +171,11 @@ pub fn step_to_wire(step: &StepRecord) -> pb::Step {
             .end
             .as_ref()
             .map(|e| observation_to_wire(&e.final_observation)),
+        outcome: step
+            .end
+            .as_ref()
+            .map_or(pb::Outcome::Running, |e| outcome_to_wire(e.outcome))
+            .into(),
     }
 }
 
@@ -220,9 +237,9 @@ mod tests {
         }
     }
 
-    fn ended(kind: EndKind) -> Option<EpisodeEnd> {
+    fn ended(outcome: Outcome) -> Option<EpisodeEnd> {
         Some(EpisodeEnd {
-            kind,
+            outcome,
             final_observation: Observation {
                 centres: vec![],
                 vector: [0.0, 0.01],
@@ -234,8 +251,9 @@ mod tests {
     fn steps_round_trip_through_bytes() {
         for s in [
             step(None),
-            step(ended(EndKind::Terminated)),
-            step(ended(EndKind::Truncated)),
+            step(ended(Outcome::Success)),
+            step(ended(Outcome::Collision)),
+            step(ended(Outcome::Timeout)),
         ] {
             let bytes = step_to_wire(&s).encode_to_vec();
             let decoded = pb::Step::decode(bytes.as_slice()).unwrap();
@@ -296,6 +314,20 @@ mod tests {
 
         let mut m = good.clone();
         m.terminated = true;
+        assert_eq!(field_of(&m), "steps[4].outcome");
+
+        let mut m = good.clone();
+        m.terminated = true;
+        m.outcome = pb::Outcome::Timeout.into();
+        assert_eq!(field_of(&m), "steps[4].outcome");
+
+        let mut m = good.clone();
+        m.outcome = 99;
+        assert_eq!(field_of(&m), "steps[4].outcome");
+
+        let mut m = good.clone();
+        m.terminated = true;
+        m.outcome = pb::Outcome::Success.into();
         assert_eq!(field_of(&m), "steps[4].final_observation");
 
         let mut m = good;

@@ -7,11 +7,13 @@
 //! field and name the one that is wrong.
 
 mod convert;
+mod snapshot_download;
 
 pub use convert::{
     WireError, action_from_wire, action_to_wire, observation_from_wire, observation_to_wire,
     outcome_to_wire, step_batch_from_wire, step_from_wire, step_to_wire,
 };
+pub use snapshot_download::{DownloadError, download_snapshot};
 
 /// Types and service stubs generated from the proto files.
 #[allow(missing_docs, clippy::all, clippy::pedantic)]

@@ -11,4 +11,4 @@
 
 mod storage;
 
-pub use storage::{Replay, ReplayConfig, ReplayError, SampledBatch, Source};
+pub use storage::{Replay, ReplayConfig, ReplayDecodeError, ReplayError, SampledBatch, Source};

@@ -2,7 +2,7 @@
 
 use serde::{Deserialize, Serialize};
 use std::collections::{HashMap, VecDeque};
-use tweezer_gym::{EndKind, Observation, SplitMix64, StepRecord};
+use tweezer_gym::{Observation, SplitMix64, StepRecord};
 
 /// Sizes of the replay.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -177,9 +177,9 @@ impl Replay {
         id
     }
 
-    /// Stores one step from `source`, linking it to that environment's
-    /// previous step, and removes the oldest records beyond capacity.
-    pub fn insert(&mut self, source: Source, step: &StepRecord) -> Result<(), ReplayError> {
+    /// Whether a record can hold `step`: every observation lists at most
+    /// 65,535 centres.
+    pub fn admits(step: &StepRecord) -> Result<(), ReplayError> {
         let too_many = |o: &Observation| o.centres.len() > usize::from(u16::MAX);
         if too_many(&step.observation) {
             return Err(ReplayError::TooManyCentres(step.observation.centres.len()));
@@ -191,6 +191,13 @@ impl Replay {
                 end.final_observation.centres.len(),
             ));
         }
+        Ok(())
+    }
+
+    /// Stores one step from `source`, linking it to that environment's
+    /// previous step, and removes the oldest records beyond capacity.
+    pub fn insert(&mut self, source: Source, step: &StepRecord) -> Result<(), ReplayError> {
+        Self::admits(step)?;
         let terminated = step.terminated();
         let id = self.push(&step.observation, Some((step, terminated)));
         let key = (source, step.env);
@@ -214,7 +221,6 @@ impl Replay {
             Some(end) => {
                 let last = self.push(&end.final_observation, None);
                 self.link(id, last);
-                debug_assert_eq!(end.kind == EndKind::Terminated, terminated);
             }
         }
         self.evict();
@@ -295,5 +301,158 @@ impl Replay {
             .filter(complete)
             .nth(k)
             .expect("k is below the number of complete records")
+    }
+}
+
+/// A replay file that cannot be read back.
+#[derive(Debug, thiserror::Error, PartialEq, Eq)]
+#[error("replay state is corrupt: {0}")]
+pub struct ReplayDecodeError(String);
+
+/// Little-endian reads from a byte slice, failing cleanly at its end.
+struct Reader<'a>(&'a [u8]);
+
+impl Reader<'_> {
+    fn take<const N: usize>(&mut self) -> Result<[u8; N], ReplayDecodeError> {
+        if self.0.len() < N {
+            return Err(ReplayDecodeError("truncated".into()));
+        }
+        let (head, rest) = self.0.split_at(N);
+        self.0 = rest;
+        Ok(head.try_into().expect("split at N"))
+    }
+    fn u64(&mut self) -> Result<u64, ReplayDecodeError> {
+        self.take().map(u64::from_le_bytes)
+    }
+    fn u32(&mut self) -> Result<u32, ReplayDecodeError> {
+        self.take().map(u32::from_le_bytes)
+    }
+    fn f32(&mut self) -> Result<f32, ReplayDecodeError> {
+        self.take().map(f32::from_le_bytes)
+    }
+    fn count(&mut self, item_bytes: usize) -> Result<usize, ReplayDecodeError> {
+        let n = self.u64()? as usize;
+        if n.saturating_mul(item_bytes) > self.0.len() {
+            return Err(ReplayDecodeError(format!("{n} items do not fit the data")));
+        }
+        Ok(n)
+    }
+}
+
+const RECORD_BYTES: usize = 8 + 2 + 1 + 5 * 4 + 8;
+
+impl Replay {
+    /// The replay's contents as bytes (little-endian), for a checkpoint.
+    pub fn encode(&self) -> Vec<u8> {
+        let mut out = Vec::with_capacity(
+            64 + self.records.len() * RECORD_BYTES
+                + self.centres.len() * 8
+                + self.pending.len() * 24,
+        );
+        for v in [
+            self.first_id,
+            self.first_centre,
+            self.transitions as u64,
+            self.inserted,
+            self.records.len() as u64,
+        ] {
+            out.extend(v.to_le_bytes());
+        }
+        for r in &self.records {
+            out.extend(r.centres_at.to_le_bytes());
+            out.extend(r.centres_len.to_le_bytes());
+            out.push(u8::from(r.step) | u8::from(r.terminated) << 1);
+            for v in [r.vector[0], r.vector[1], r.action[0], r.action[1], r.reward] {
+                out.extend(v.to_le_bytes());
+            }
+            out.extend(r.next.to_le_bytes());
+        }
+        out.extend((self.centres.len() as u64).to_le_bytes());
+        for c in &self.centres {
+            out.extend(c[0].to_le_bytes());
+            out.extend(c[1].to_le_bytes());
+        }
+        out.extend((self.pending.len() as u64).to_le_bytes());
+        for (&(source, env), p) in &self.pending {
+            out.extend(source.to_le_bytes());
+            out.extend(env.to_le_bytes());
+            out.extend(p.id.to_le_bytes());
+            out.extend(p.episode.to_le_bytes());
+            out.extend(p.t.to_le_bytes());
+        }
+        out
+    }
+
+    /// A replay with `config` holding what [`Self::encode`] wrote. The
+    /// contents are checked for consistency; a smaller capacity than the
+    /// saved one drops the oldest records.
+    pub fn decode(config: ReplayConfig, bytes: &[u8]) -> Result<Self, ReplayDecodeError> {
+        let corrupt = |what: &str| ReplayDecodeError(what.into());
+        let mut r = Reader(bytes);
+        let mut replay = Replay::new(config);
+        replay.first_id = r.u64()?;
+        replay.first_centre = r.u64()?;
+        let transitions = r.u64()? as usize;
+        replay.inserted = r.u64()?;
+        let n = r.count(RECORD_BYTES)?;
+        replay.records.reserve_exact(n);
+        for _ in 0..n {
+            let centres_at = r.u64()?;
+            let centres_len = u16::from_le_bytes(r.take()?);
+            let [flags] = r.take()?;
+            let mut f = [0.0; 5];
+            for v in &mut f {
+                *v = r.f32()?;
+            }
+            replay.records.push_back(Record {
+                centres_at,
+                centres_len,
+                step: flags & 1 != 0,
+                terminated: flags & 2 != 0,
+                vector: [f[0], f[1]],
+                action: [f[2], f[3]],
+                reward: f[4],
+                next: r.u64()?,
+            });
+        }
+        let n = r.count(8)?;
+        replay.centres.reserve_exact(n);
+        for _ in 0..n {
+            replay.centres.push_back([r.f32()?, r.f32()?]);
+        }
+        let n = r.count(28)?;
+        for _ in 0..n {
+            let key = (r.u32()?, r.u32()?);
+            let pending = Pending {
+                id: r.u64()?,
+                episode: r.u64()?,
+                t: r.u32()?,
+            };
+            replay.pending.insert(key, pending);
+        }
+        if !r.0.is_empty() {
+            return Err(corrupt("trailing bytes"));
+        }
+        let end_id = replay.first_id + replay.records.len() as u64;
+        let end_centre = replay.first_centre + replay.centres.len() as u64;
+        let mut complete = 0;
+        for record in &replay.records {
+            let centres_end = record.centres_at + u64::from(record.centres_len);
+            if record.centres_at < replay.first_centre || centres_end > end_centre {
+                return Err(corrupt("a record's centres lie outside the centre store"));
+            }
+            if record.next != NONE {
+                if record.next >= end_id || record.next < replay.first_id {
+                    return Err(corrupt("a record links outside the replay"));
+                }
+                complete += usize::from(record.step);
+            }
+        }
+        if complete != transitions {
+            return Err(corrupt("the transition count does not match the records"));
+        }
+        replay.transitions = transitions;
+        replay.evict();
+        Ok(replay)
     }
 }

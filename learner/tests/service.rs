@@ -5,18 +5,18 @@ use std::sync::Arc;
 use tokio_stream::wrappers::ReceiverStream;
 use tonic::Code;
 use tweezer_gym::{EnvConfig, ObservationBounds};
-use tweezer_learner::ingest::Ingest;
 use tweezer_learner::loopback::{batches, serve};
 use tweezer_learner::replay::{Replay, ReplayConfig};
+use tweezer_learner::shared::Shared;
 use tweezer_proto::pb;
 use tweezer_proto::pb::learner_client::LearnerClient;
 
-fn ingest() -> Arc<Ingest> {
+fn ingest() -> Arc<Shared> {
     let replay = Replay::new(ReplayConfig {
         capacity: 100_000,
         ..ReplayConfig::default()
     });
-    Arc::new(Ingest::new(
+    Arc::new(Shared::new(
         replay,
         None,
         ObservationBounds::for_config(&EnvConfig::default()),
@@ -27,7 +27,7 @@ type Client = LearnerClient<tonic::transport::Channel>;
 type Sender = tokio::sync::mpsc::Sender<pb::StepBatch>;
 
 /// A learner on loopback and a client connected to it.
-async fn connected() -> (Arc<Ingest>, Client) {
+async fn connected() -> (Arc<Shared>, Client) {
     let ingest = ingest();
     let addr = serve(ingest.clone()).await.unwrap();
     let client = LearnerClient::connect(format!("http://{addr}"))
@@ -71,7 +71,7 @@ async fn batches_are_acknowledged_in_order_and_counted() {
         status.buffer_size >= 316 && status.buffer_size <= 320,
         "{status:?}"
     );
-    assert_eq!(status.steps_inserted, status.buffer_size);
+    assert_eq!(status.steps_inserted, 320);
     assert_eq!(status.buffer_capacity, 100_000);
     drop(tx);
     assert!(
@@ -97,6 +97,12 @@ async fn malformed_batches_are_refused_and_never_touch_the_replay() {
     let mut anonymous = good[1].clone();
     anonymous.actor_id.clear();
     cases.push((anonymous, "actor_id"));
+    let mut spaced = good[1].clone();
+    spaced.actor_id = "actor b".into();
+    cases.push((spaced, "actor_id"));
+    let mut stranger = good[1].clone();
+    stranger.actor_id = "actor-c".into();
+    cases.push((stranger, "unknown actor `actor-c`"));
 
     for (i, (bad, field)) in cases.into_iter().enumerate() {
         let (tx, mut acks) = open(&mut client).await;
@@ -148,4 +154,72 @@ async fn eight_concurrent_streams_all_land() {
     // 8 actors x 500 steps, minus at most one pending step per environment.
     let len = ingest.replay().len();
     assert!((3_984..=4_000).contains(&len), "{len}");
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_batch_resent_after_a_reconnect_is_acknowledged_not_stored_again() {
+    let (ingest, mut client) = connected().await;
+    let sent = batches(&EnvConfig::default(), "actor-d", 2, 3, 10, 4).unwrap();
+    let (tx, mut acks) = open(&mut client).await;
+    for batch in &sent[..2] {
+        tx.send(batch.clone()).await.unwrap();
+        acks.message().await.unwrap().unwrap();
+    }
+    drop((tx, acks));
+    let stored = ingest.steps_inserted();
+    assert_eq!(stored, 20);
+
+    // The actor reconnects and resends batch 1, which it never saw acked.
+    let (tx, mut acks) = open(&mut client).await;
+    for batch in &sent[1..] {
+        tx.send(batch.clone()).await.unwrap();
+        let ack = acks.message().await.unwrap().unwrap();
+        assert_eq!(ack.sequence, batch.sequence);
+    }
+    assert_eq!(ingest.duplicates(), 1);
+    assert_eq!(
+        ingest.steps_inserted(),
+        30,
+        "batch 2 stored, batch 1 not twice"
+    );
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_producer_held_by_back_pressure_is_released_when_its_actor_goes() {
+    use tweezer_learner::limiter::{Limiter, LimiterConfig, SharedLimiter};
+    // Learning starts at 10 transitions and may owe at most 5 updates; no
+    // learner runs, so the second batch must wait.
+    let limiter = Limiter::new(LimiterConfig {
+        min_size: 10,
+        slack: 5.0,
+        ..LimiterConfig::default()
+    });
+    let shared = Arc::new(Shared::new(
+        Replay::new(ReplayConfig::default()),
+        Some(SharedLimiter::new(limiter, 0)),
+        ObservationBounds::for_config(&EnvConfig::default()),
+    ));
+    let addr = serve(shared.clone()).await.unwrap();
+    let mut client = LearnerClient::connect(format!("http://{addr}"))
+        .await
+        .unwrap();
+    let sent = batches(&EnvConfig::default(), "actor-e", 1, 3, 20, 5).unwrap();
+    let (tx, mut acks) = open(&mut client).await;
+    tx.send(sent[0].clone()).await.unwrap();
+    acks.message().await.unwrap().unwrap();
+    tx.send(sent[1].clone()).await.unwrap();
+    let waited = tokio::time::timeout(std::time::Duration::from_millis(500), acks.message()).await;
+    assert!(waited.is_err(), "the second batch is held back");
+    assert_eq!(shared.connected(), 1);
+
+    drop((tx, acks, client));
+    let deadline = std::time::Instant::now() + std::time::Duration::from_secs(5);
+    while shared.connected() > 0 {
+        assert!(
+            std::time::Instant::now() < deadline,
+            "the held producer never gave up"
+        );
+        tokio::time::sleep(std::time::Duration::from_millis(20)).await;
+    }
+    assert_eq!(shared.steps_inserted(), 20, "the held batch was not stored");
 }

@@ -1,0 +1,255 @@
+//! Checkpoints of the whole learner: networks, targets, optimiser states,
+//! counters, sampler state, episode window, snapshot bookkeeping, actors'
+//! sequence numbers, and the replay when configured.
+//!
+//! One file per checkpoint, `ckpt-<updates>-<steps>.twz`:
+//!
+//! ```text
+//! "TWZCKPT1" | header length (u64 LE) | header (JSON) | parts... | SHA-256 of all before
+//! ```
+//!
+//! Files are written atomically ([`crate::fsio::write_atomic`]); a file that
+//! is truncated or corrupt fails its checksum and resuming falls back to the
+//! previous one.
+
+use crate::episodes::Episodes;
+use crate::fsio::{sync_dir, write_atomic};
+use crate::snapshots::SnapshotsState;
+use serde::{Deserialize, Serialize};
+use sha2::{Digest, Sha256};
+use std::collections::BTreeMap;
+use std::io::{self, Write};
+use std::ops::Range;
+use std::path::{Path, PathBuf};
+
+const MAGIC: &[u8; 8] = b"TWZCKPT1";
+const EXTENSION: &str = "twz";
+
+/// The learner's state besides the tensors.
+#[derive(Clone, Debug, Default, Serialize, Deserialize)]
+pub struct CheckpointHeader {
+    /// TD3 updates made.
+    pub updates: u64,
+    /// Transitions inserted since the run began.
+    pub steps_inserted: u64,
+    /// Replay sampler state ([`tweezer_gym::SplitMix64::state`]).
+    pub sampler_state: u64,
+    /// Image resolution the networks take: (height, width).
+    pub resolution: [usize; 2],
+    /// Finished episodes and the rolling window.
+    pub episodes: Episodes,
+    /// Published snapshots.
+    pub snapshots: SnapshotsState,
+    /// Each actor's last accepted batch sequence number.
+    pub actors: BTreeMap<String, u64>,
+    /// Names and lengths of the binary parts, in file order.
+    pub parts: Vec<(String, u64)>,
+}
+
+/// A checkpoint that cannot be used.
+#[derive(Debug, thiserror::Error)]
+pub enum CheckpointError {
+    /// Reading or writing failed.
+    #[error("checkpoint {path}: {source}")]
+    Io {
+        /// The file.
+        path: PathBuf,
+        /// Why.
+        source: io::Error,
+    },
+    /// The file is not a whole, valid checkpoint.
+    #[error("checkpoint {path} is unusable: {reason}")]
+    Corrupt {
+        /// The file.
+        path: PathBuf,
+        /// What is wrong.
+        reason: String,
+    },
+}
+
+/// A checkpoint read back and verified.
+#[derive(Debug)]
+pub struct Loaded {
+    /// Its file.
+    pub path: PathBuf,
+    /// The state besides the tensors.
+    pub header: CheckpointHeader,
+    bytes: Vec<u8>,
+    parts: BTreeMap<String, Range<usize>>,
+}
+
+impl Loaded {
+    /// The binary part `name`.
+    pub fn part(&self, name: &str) -> Option<&[u8]> {
+        self.parts.get(name).map(|r| &self.bytes[r.clone()])
+    }
+}
+
+/// The checkpoint directory of a run.
+#[derive(Clone, Debug)]
+pub struct Checkpoints {
+    dir: PathBuf,
+    keep: usize,
+}
+
+impl Checkpoints {
+    /// Checkpoints in `dir` (created if missing), keeping the newest `keep`.
+    pub fn open(dir: &Path, keep: usize) -> Result<Self, CheckpointError> {
+        std::fs::create_dir_all(dir).map_err(|source| CheckpointError::Io {
+            path: dir.into(),
+            source,
+        })?;
+        Ok(Self {
+            dir: dir.into(),
+            keep: keep.max(1),
+        })
+    }
+
+    /// Writes a checkpoint of `header` and `parts`, then deletes the oldest
+    /// beyond `keep`. Returns its path.
+    pub fn write(
+        &self,
+        mut header: CheckpointHeader,
+        parts: &[(&str, Vec<u8>)],
+    ) -> Result<PathBuf, CheckpointError> {
+        header.parts = parts
+            .iter()
+            .map(|(name, bytes)| (name.to_string(), bytes.len() as u64))
+            .collect();
+        let path = self.dir.join(format!(
+            "ckpt-{:012}-{:012}.{EXTENSION}",
+            header.updates, header.steps_inserted
+        ));
+        let io_error = |source| CheckpointError::Io {
+            path: path.clone(),
+            source,
+        };
+        let json = serde_json::to_vec(&header).map_err(|e| io_error(io::Error::other(e)))?;
+        write_atomic(&path, |w: &mut dyn Write| {
+            let mut hashing = Hashing {
+                inner: w,
+                hash: Sha256::new(),
+            };
+            hashing.write_all(MAGIC)?;
+            hashing.write_all(&(json.len() as u64).to_le_bytes())?;
+            hashing.write_all(&json)?;
+            for (_, bytes) in parts {
+                hashing.write_all(bytes)?;
+            }
+            let digest = hashing.hash.finalize();
+            hashing.inner.write_all(&digest)
+        })
+        .map_err(io_error)?;
+        self.prune(&path);
+        Ok(path)
+    }
+
+    /// Checkpoint files, newest first.
+    pub fn list(&self) -> Result<Vec<PathBuf>, CheckpointError> {
+        let entries = std::fs::read_dir(&self.dir).map_err(|source| CheckpointError::Io {
+            path: self.dir.clone(),
+            source,
+        })?;
+        let mut files: Vec<PathBuf> = entries
+            .filter_map(|e| e.ok().map(|e| e.path()))
+            .filter(|p| {
+                p.extension().is_some_and(|e| e == EXTENSION)
+                    && p.file_name()
+                        .is_some_and(|n| n.to_string_lossy().starts_with("ckpt-"))
+            })
+            .collect();
+        files.sort();
+        files.reverse();
+        Ok(files)
+    }
+
+    /// The newest checkpoint that reads back whole, with the reasons the
+    /// newer ones were skipped; `None` when there is no usable one.
+    pub fn newest_valid(&self) -> Result<(Option<Loaded>, Vec<CheckpointError>), CheckpointError> {
+        let mut skipped = Vec::new();
+        for path in self.list()? {
+            match read(&path) {
+                Ok(loaded) => return Ok((Some(loaded), skipped)),
+                Err(e) => skipped.push(e),
+            }
+        }
+        Ok((None, skipped))
+    }
+
+    fn prune(&self, newest: &Path) {
+        let Ok(files) = self.list() else { return };
+        let mut removed = false;
+        for old in files.iter().skip(self.keep) {
+            if old != newest {
+                removed |= std::fs::remove_file(old).is_ok();
+            }
+        }
+        if removed {
+            let _ = sync_dir(&self.dir);
+        }
+    }
+}
+
+/// Reads and verifies one checkpoint file.
+pub fn read(path: &Path) -> Result<Loaded, CheckpointError> {
+    let corrupt = |reason: String| CheckpointError::Corrupt {
+        path: path.into(),
+        reason,
+    };
+    let bytes = std::fs::read(path).map_err(|source| CheckpointError::Io {
+        path: path.into(),
+        source,
+    })?;
+    if bytes.len() < MAGIC.len() + 8 + 32 || &bytes[..MAGIC.len()] != MAGIC {
+        return Err(corrupt("not a checkpoint file, or cut short".into()));
+    }
+    let (body, digest) = bytes.split_at(bytes.len() - 32);
+    if Sha256::digest(body).as_slice() != digest {
+        return Err(corrupt(
+            "checksum mismatch: the file was cut short or altered".into(),
+        ));
+    }
+    let json_len = u64::from_le_bytes(body[8..16].try_into().expect("8 bytes")) as usize;
+    let json = body
+        .get(16..16usize.saturating_add(json_len))
+        .ok_or_else(|| corrupt("header length beyond the file".into()))?;
+    let header: CheckpointHeader =
+        serde_json::from_slice(json).map_err(|e| corrupt(format!("header: {e}")))?;
+    let mut parts = BTreeMap::new();
+    let mut at = 16 + json_len;
+    for (name, len) in &header.parts {
+        let end = at.saturating_add(*len as usize);
+        if end > body.len() {
+            return Err(corrupt(format!("part `{name}` runs past the end")));
+        }
+        parts.insert(name.clone(), at..end);
+        at = end;
+    }
+    if at != body.len() {
+        return Err(corrupt("bytes after the last part".into()));
+    }
+    Ok(Loaded {
+        path: path.into(),
+        header,
+        bytes,
+        parts,
+    })
+}
+
+/// A writer that hashes what passes through it.
+struct Hashing<'a> {
+    inner: &'a mut dyn Write,
+    hash: Sha256,
+}
+
+impl Write for Hashing<'_> {
+    fn write(&mut self, buf: &[u8]) -> io::Result<usize> {
+        let n = self.inner.write(buf)?;
+        self.hash.update(&buf[..n]);
+        Ok(n)
+    }
+
+    fn flush(&mut self) -> io::Result<()> {
+        self.inner.flush()
+    }
+}

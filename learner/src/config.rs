@@ -1,0 +1,217 @@
+//! The learner's config file: an `[env]` table and a `[learner]` table,
+//! every field defaulting to SPEC values.
+
+use crate::limiter::LimiterConfig;
+use crate::replay::ReplayConfig;
+use crate::td3::Td3Config;
+use burn::tensor::Device;
+use serde::{Deserialize, Serialize};
+use std::net::SocketAddr;
+use std::path::{Path, PathBuf};
+use tweezer_gym::{ConfigError, EnvConfig, read_toml};
+
+/// The whole file.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct LearnerFile {
+    /// The environment the actors run (the learner renders its images).
+    pub env: EnvConfig,
+    /// The learner itself.
+    pub learner: LearnerConfig,
+}
+
+impl LearnerFile {
+    /// The defaults, or the validated contents of `path`.
+    pub fn load(path: Option<&Path>) -> Result<Self, ConfigError> {
+        let config: Self = match path {
+            Some(path) => read_toml(path)?,
+            None => Self::default(),
+        };
+        config.validate()?;
+        Ok(config)
+    }
+
+    /// Checks every field; the error names the first one out of range.
+    pub fn validate(&self) -> Result<(), ConfigError> {
+        self.env.validate().map_err(|e| e.in_table("env"))?;
+        self.learner.validate().map_err(|e| e.in_table("learner"))
+    }
+
+    /// The configuration as TOML, every default written out.
+    pub fn to_toml(&self) -> String {
+        toml::to_string(self).expect("every config field is TOML-representable")
+    }
+}
+
+/// How the learner serves, trains and keeps its state.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct LearnerConfig {
+    /// Address the gRPC service listens on.
+    pub listen: SocketAddr,
+    /// Directory for the config, snapshots, checkpoints and metrics.
+    pub run_dir: PathBuf,
+    /// Where the networks train.
+    pub device: DeviceChoice,
+    /// Seed of the replay sampler and of the networks' initial weights.
+    pub seed: u64,
+    /// Transitions per update (SPEC §4: 32).
+    pub batch_size: usize,
+    /// Transitions taken with uniformly random actions before the actors
+    /// switch to the policy (SPEC §4: 10,000).
+    pub uniform_steps: u64,
+    /// The replay table.
+    pub replay: ReplayConfig,
+    /// TD3.
+    pub td3: Td3Config,
+    /// Updates per inserted transition.
+    pub limiter: LimiterConfig,
+    /// Policy snapshots.
+    pub snapshots: SnapshotConfig,
+    /// Checkpoints.
+    pub checkpoints: CheckpointConfig,
+    /// Updates between two lines of the metrics file.
+    pub metrics_every_updates: u64,
+}
+
+impl Default for LearnerConfig {
+    fn default() -> Self {
+        Self {
+            listen: SocketAddr::from(([127, 0, 0, 1], 50051)),
+            run_dir: PathBuf::from("runs/learner"),
+            device: DeviceChoice::Flex,
+            seed: 0,
+            batch_size: 32,
+            uniform_steps: 10_000,
+            replay: ReplayConfig::default(),
+            td3: Td3Config::default(),
+            limiter: LimiterConfig::default(),
+            snapshots: SnapshotConfig::default(),
+            checkpoints: CheckpointConfig::default(),
+            metrics_every_updates: 100,
+        }
+    }
+}
+
+impl LearnerConfig {
+    /// Checks every field; the error names the first one out of range.
+    pub fn validate(&self) -> Result<(), ConfigError> {
+        let invalid = |field: &str, reason: &str| {
+            Err(ConfigError::Invalid {
+                field: field.into(),
+                reason: reason.into(),
+            })
+        };
+        if self.batch_size == 0 {
+            return invalid("batch_size", "must be at least 1");
+        }
+        if self.replay.capacity == 0 {
+            return invalid("replay.capacity", "must be at least 1");
+        }
+        if self.replay.centres_per_transition == 0 {
+            return invalid("replay.centres_per_transition", "must be at least 1");
+        }
+        if self.snapshots.every_updates == 0 {
+            return invalid("snapshots.every_updates", "must be at least 1");
+        }
+        if self.snapshots.keep == 0 {
+            return invalid("snapshots.keep", "must be at least 1");
+        }
+        if self.checkpoints.keep == 0 {
+            return invalid("checkpoints.keep", "must be at least 1");
+        }
+        if !(self.checkpoints.every_seconds.is_finite() && self.checkpoints.every_seconds >= 0.0) {
+            return invalid(
+                "checkpoints.every_seconds",
+                "must be finite and >= 0 (0: only on shutdown)",
+            );
+        }
+        if self.metrics_every_updates == 0 {
+            return invalid("metrics_every_updates", "must be at least 1");
+        }
+        self.td3.validate()?;
+        self.limiter.validate()?;
+        self.device.device().map(|_| ())
+    }
+}
+
+/// Policy snapshot publishing.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct SnapshotConfig {
+    /// Updates between snapshots.
+    pub every_updates: u64,
+    /// Snapshot files kept on disk besides the best one.
+    pub keep: usize,
+}
+
+impl Default for SnapshotConfig {
+    fn default() -> Self {
+        Self {
+            every_updates: 1_000,
+            keep: 5,
+        }
+    }
+}
+
+/// Checkpoints of the whole learner state.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct CheckpointConfig {
+    /// Seconds between periodic checkpoints; 0 writes one only on shutdown.
+    pub every_seconds: f64,
+    /// Checkpoints kept; older ones are deleted once a newer one is safe.
+    pub keep: usize,
+    /// Include the replay (large: ~180 bytes per transition).
+    pub replay: bool,
+}
+
+impl Default for CheckpointConfig {
+    fn default() -> Self {
+        Self {
+            every_seconds: 600.0,
+            keep: 3,
+            replay: false,
+        }
+    }
+}
+
+/// The device the networks train on. GPU devices need the learner built
+/// with the matching cargo feature.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum DeviceChoice {
+    /// Burn's pure-Rust CPU backend.
+    Flex,
+    /// The first CUDA GPU (feature `cuda`).
+    Cuda,
+    /// The default wgpu adapter: Vulkan, Metal or DirectX (feature `wgpu`).
+    Wgpu,
+}
+
+impl DeviceChoice {
+    /// The device, or an error naming the cargo feature this build lacks.
+    pub fn device(self) -> Result<Device, ConfigError> {
+        match self {
+            Self::Flex => Ok(Device::flex()),
+            #[cfg(feature = "cuda")]
+            Self::Cuda => Ok(Device::cuda(0)),
+            #[cfg(not(feature = "cuda"))]
+            Self::Cuda => Err(missing("cuda")),
+            #[cfg(feature = "wgpu")]
+            Self::Wgpu => Ok(Device::wgpu(burn::tensor::DeviceKind::DefaultDevice)),
+            #[cfg(not(feature = "wgpu"))]
+            Self::Wgpu => Err(missing("wgpu")),
+        }
+    }
+}
+
+#[cfg(not(all(feature = "cuda", feature = "wgpu")))]
+fn missing(feature: &str) -> ConfigError {
+    ConfigError::Invalid {
+        field: "device".into(),
+        reason: format!(
+            "this learner was built without the `{feature}` feature; rebuild with `cargo build --release -p tweezer-learner --features {feature}`"
+        ),
+    }
+}

@@ -1,0 +1,205 @@
+//! `learner serve`: the learner process. Builds the shared state (fresh or
+//! from the newest valid checkpoint), serves gRPC (the `Learner` service and
+//! `grpc.health.v1`), trains on a thread of its own, and on SIGINT or
+//! SIGTERM stops accepting, finishes the update in flight and writes a
+//! final checkpoint.
+
+use crate::checkpoint::{Checkpoints, Loaded};
+use crate::config::LearnerFile;
+use crate::fsio::write_atomic;
+use crate::limiter::{Limiter, SharedLimiter};
+use crate::metrics::Metrics;
+use crate::replay::Replay;
+use crate::service::LearnerService;
+use crate::shared::Shared;
+use crate::snapshots::Snapshots;
+use crate::training::Trainer;
+use anyhow::{Context, bail};
+use std::io::Write;
+use std::path::Path;
+use std::sync::Arc;
+use tokio::net::TcpListener;
+use tokio_stream::wrappers::TcpListenerStream;
+use tweezer_gym::ObservationBounds;
+use tweezer_proto::pb::learner_server::LearnerServer;
+
+/// The run directory's parts.
+const CHECKPOINTS: &str = "checkpoints";
+const SNAPSHOTS: &str = "snapshots";
+const METRICS: &str = "metrics.jsonl";
+/// The effective config, written when a run starts.
+pub const CONFIG: &str = "config.toml";
+
+/// Runs the learner until a signal stops it or training fails. With
+/// `resume`, continues the run in `file.learner.run_dir` from its newest
+/// valid checkpoint.
+pub fn serve(file: LearnerFile, resume: bool) -> anyhow::Result<()> {
+    let config = &file.learner;
+    let run_dir = &config.run_dir;
+    std::fs::create_dir_all(run_dir)
+        .with_context(|| format!("cannot create run directory {}", run_dir.display()))?;
+    let checkpoints = Checkpoints::open(&run_dir.join(CHECKPOINTS), config.checkpoints.keep)?;
+    let resumed = if resume {
+        Some(newest_checkpoint(&checkpoints, run_dir)?)
+    } else {
+        if !checkpoints.list()?.is_empty() {
+            bail!(
+                "{} already holds a run's checkpoints: continue it with `learner serve --resume {0}`, or set another learner.run_dir",
+                run_dir.display()
+            );
+        }
+        write_atomic(&run_dir.join(CONFIG), |w: &mut dyn Write| {
+            w.write_all(file.to_toml().as_bytes())
+        })
+        .context("cannot write the run's config.toml")?;
+        None
+    };
+    let shared = Arc::new(shared_state(&file, run_dir, resumed.as_ref())?);
+    let device = config.device.device()?;
+    let trainer = Trainer::new(
+        &file,
+        shared.clone(),
+        checkpoints,
+        resumed.as_ref(),
+        &device,
+    )?;
+    drop(resumed);
+
+    let runtime = tokio::runtime::Builder::new_multi_thread()
+        .enable_all()
+        .build()?;
+    runtime.block_on(async {
+        let listener = TcpListener::bind(config.listen)
+            .await
+            .with_context(|| format!("cannot listen on {} (learner.listen)", config.listen))?;
+        let addr = listener.local_addr()?;
+        let (health, health_service) = tonic_health::server::health_reporter();
+        health
+            .set_serving::<LearnerServer<LearnerService>>()
+            .await;
+        let (trained_tx, trained_rx) = tokio::sync::oneshot::channel();
+        let trainer_shared = shared.clone();
+        let training = std::thread::Builder::new()
+            .name("training".into())
+            .spawn(move || {
+                let result = trainer.run();
+                trainer_shared.stop();
+                let _ = trained_tx.send(result);
+            })?;
+        tracing::info!(%addr, run_dir = %run_dir.display(), "learner serving");
+        println!("learner listening on {addr}");
+        let stopped = shared.clone();
+        let shutdown = async move {
+            tokio::select! {
+                signal = stop_signal() => tracing::info!(signal, "stopping: finishing the update in flight and writing a checkpoint"),
+                _ = closed(&stopped) => {}
+            }
+            stopped.stop();
+        };
+        let server = tonic::transport::Server::builder()
+            .add_service(health_service)
+            .add_service(LearnerServer::new(LearnerService::new(shared.clone())))
+            .serve_with_incoming_shutdown(TcpListenerStream::new(listener), shutdown);
+        let served = server.await;
+        shared.stop();
+        let trained = trained_rx.await.unwrap_or_else(|_| {
+            Err(anyhow::anyhow!("the training thread ended without a result"))
+        });
+        let _ = training.join();
+        served.context("gRPC server failed")?;
+        trained
+    })
+}
+
+/// The newest checkpoint that reads back, saying which were skipped.
+fn newest_checkpoint(checkpoints: &Checkpoints, run_dir: &Path) -> anyhow::Result<Loaded> {
+    let (loaded, skipped) = checkpoints.newest_valid()?;
+    for error in &skipped {
+        tracing::warn!(%error, "skipping an unusable checkpoint");
+    }
+    let loaded = loaded.with_context(|| {
+        format!(
+            "no usable checkpoint in {} ({} unusable)",
+            run_dir.join(CHECKPOINTS).display(),
+            skipped.len()
+        )
+    })?;
+    tracing::info!(
+        path = %loaded.path.display(),
+        updates = loaded.header.updates,
+        steps = loaded.header.steps_inserted,
+        "resuming"
+    );
+    Ok(loaded)
+}
+
+/// The replay, limiter, snapshots and counters: fresh, or as `resumed` left
+/// them. The limiter counts from the replay as restored, so a restored
+/// learner cannot wait on its own old counters.
+fn shared_state(
+    file: &LearnerFile,
+    run_dir: &Path,
+    resumed: Option<&Loaded>,
+) -> anyhow::Result<Shared> {
+    let config = &file.learner;
+    let replay = match resumed.and_then(|l| l.part("replay")) {
+        Some(bytes) => Replay::decode(config.replay.clone(), bytes)?,
+        None => Replay::new(config.replay.clone()),
+    };
+    let mut limiter = Limiter::new(config.limiter.clone());
+    limiter.rebase(replay.len());
+    let limiter = SharedLimiter::new(limiter, replay.len());
+    let snapshots_dir = run_dir.join(SNAPSHOTS);
+    let snapshots = match resumed {
+        Some(l) => Snapshots::restore(&snapshots_dir, config.snapshots.keep, &l.header.snapshots)?,
+        None => Snapshots::create(&snapshots_dir, config.snapshots.keep)?,
+    };
+    let metrics = Metrics::append(&run_dir.join(METRICS))
+        .with_context(|| format!("cannot open {}", run_dir.join(METRICS).display()))?;
+    let shared = Shared::new(
+        replay,
+        Some(limiter),
+        ObservationBounds::for_config(&file.env),
+    )
+    .with_uniform_steps(config.uniform_steps)
+    .with_snapshots(snapshots)
+    .with_metrics(metrics);
+    Ok(match resumed {
+        Some(l) => shared.with_restored(
+            l.header.steps_inserted,
+            l.header.episodes.clone(),
+            &l.header.actors,
+        ),
+        None => shared,
+    })
+}
+
+/// Resolves when training has stopped by itself (an error).
+async fn closed(shared: &Shared) {
+    while !shared.stopping() {
+        tokio::time::sleep(std::time::Duration::from_millis(100)).await;
+    }
+}
+
+/// Waits for SIGINT or SIGTERM; names the one that came.
+async fn stop_signal() -> &'static str {
+    #[cfg(unix)]
+    {
+        use tokio::signal::unix::{SignalKind, signal};
+        match signal(SignalKind::terminate()) {
+            Ok(mut term) => tokio::select! {
+                _ = tokio::signal::ctrl_c() => "SIGINT",
+                _ = term.recv() => "SIGTERM",
+            },
+            Err(_) => {
+                let _ = tokio::signal::ctrl_c().await;
+                "SIGINT"
+            }
+        }
+    }
+    #[cfg(not(unix))]
+    {
+        let _ = tokio::signal::ctrl_c().await;
+        "Ctrl-C"
+    }
+}

@@ -1,0 +1,176 @@
+//! The `Learner` gRPC service: actors stream steps in and get
+//! acknowledgements; clients fetch snapshots in chunks; operators read
+//! status. Wire types stop here: the rest of the learner sees domain types.
+
+use crate::shared::Shared;
+use crate::snapshots::{Selector, SnapshotsError};
+use std::pin::Pin;
+use std::sync::Arc;
+use tokio_stream::Stream;
+use tonic::{Request, Response, Status, Streaming};
+use tweezer_proto::pb;
+use tweezer_proto::pb::learner_server::Learner;
+
+/// Largest `data` of one snapshot chunk: 1 MiB, well inside gRPC's default
+/// 4 MiB message limit.
+pub const CHUNK_BYTES: usize = 1 << 20;
+
+/// The `Learner` service over the shared state.
+#[derive(Debug, Clone)]
+pub struct LearnerService {
+    shared: Arc<Shared>,
+}
+
+impl LearnerService {
+    /// The service for `shared`.
+    pub fn new(shared: Arc<Shared>) -> Self {
+        Self { shared }
+    }
+}
+
+type AckStream = Pin<Box<dyn Stream<Item = Result<pb::StepAck, Status>> + Send>>;
+type ChunkStream = Pin<Box<dyn Stream<Item = Result<pb::SnapshotChunk, Status>> + Send>>;
+
+fn selector(request: &pb::SnapshotRequest) -> Result<Selector, Status> {
+    use pb::snapshot_request::Selector as Wire;
+    match request.selector {
+        Some(Wire::Tag(tag)) => match pb::SnapshotTag::try_from(tag) {
+            Ok(pb::SnapshotTag::Latest) => Ok(Selector::Latest),
+            Ok(pb::SnapshotTag::Best) => Ok(Selector::Best),
+            _ => Err(Status::invalid_argument(format!(
+                "selector.tag: {tag} is not LATEST or BEST"
+            ))),
+        },
+        Some(Wire::Version(v)) => Ok(Selector::Version(v)),
+        None => Err(Status::invalid_argument(
+            "selector: missing (a tag or a version)",
+        )),
+    }
+}
+
+impl From<SnapshotsError> for Status {
+    fn from(e: SnapshotsError) -> Self {
+        match e {
+            SnapshotsError::NotFound(m) => Status::not_found(m),
+            other => Status::internal(other.to_string()),
+        }
+    }
+}
+
+#[tonic::async_trait]
+impl Learner for LearnerService {
+    type StreamStepsStream = AckStream;
+    type GetSnapshotStream = ChunkStream;
+
+    async fn stream_steps(
+        &self,
+        request: Request<Streaming<pb::StepBatch>>,
+    ) -> Result<Response<AckStream>, Status> {
+        let mut inbound = request.into_inner();
+        let shared = self.shared.clone();
+        let (tx, rx) = tokio::sync::mpsc::channel(4);
+        tokio::spawn(async move {
+            shared.stream_opened();
+            let mut actor = None;
+            while let Ok(Some(batch)) = inbound.message().await {
+                let (s, t) = (shared.clone(), tx.clone());
+                let result = tokio::task::spawn_blocking(move || {
+                    let ack = s.accept(&batch, &mut actor, || t.is_closed());
+                    (ack, actor)
+                })
+                .await;
+                let Ok((ack, bound)) = result else {
+                    let _ = tx
+                        .send(Err(Status::internal("batch handling failed")))
+                        .await;
+                    break;
+                };
+                actor = bound;
+                let refused = ack.is_err();
+                if tx.send(ack).await.is_err() || refused {
+                    break;
+                }
+            }
+            shared.stream_closed();
+        });
+        Ok(Response::new(Box::pin(
+            tokio_stream::wrappers::ReceiverStream::new(rx),
+        )))
+    }
+
+    async fn get_snapshot(
+        &self,
+        request: Request<pb::SnapshotRequest>,
+    ) -> Result<Response<ChunkStream>, Status> {
+        let selector = selector(request.get_ref())?;
+        let shared = self.shared.clone();
+        let published = tokio::task::spawn_blocking(move || match shared.snapshots() {
+            Some(snapshots) => snapshots.get(selector).map_err(Status::from),
+            None => Err(Status::not_found(
+                "this learner publishes no snapshots (it is not training)",
+            )),
+        })
+        .await
+        .map_err(|e| Status::internal(e.to_string()))??;
+        let info = pb::SnapshotInfo {
+            version: published.info.version,
+            training_step: published.info.training_step,
+            size_bytes: published.bytes.len() as u64,
+            sha256: published.sha256.clone(),
+            architecture: published.info.architecture.clone(),
+            image_width: published.info.width as u32,
+            image_height: published.info.height as u32,
+        };
+        let chunks = (0..published.bytes.len().div_ceil(CHUNK_BYTES).max(1)).map(move |i| {
+            let start = i * CHUNK_BYTES;
+            let end = (start + CHUNK_BYTES).min(published.bytes.len());
+            Ok(pb::SnapshotChunk {
+                info: (i == 0).then(|| info.clone()),
+                offset: start as u64,
+                data: published.bytes[start..end].to_vec(),
+            })
+        });
+        Ok(Response::new(Box::pin(tokio_stream::iter(chunks))))
+    }
+
+    async fn get_status(
+        &self,
+        _request: Request<pb::LearnerStatusRequest>,
+    ) -> Result<Response<pb::LearnerStatus>, Status> {
+        let s = &self.shared;
+        let (len, capacity) = {
+            let replay = s.replay();
+            (replay.len(), replay.capacity())
+        };
+        let limiter_state = match s.limiter() {
+            Some(l) => l.snapshot().1.as_str().to_string(),
+            None => "learning paused".into(),
+        };
+        let rolling = s.episodes().rolling();
+        let training = *s.training();
+        let (latest_snapshot, best_snapshot) = s
+            .snapshots()
+            .map_or((0, 0), |s| (s.latest_version(), s.best_version()));
+        Ok(Response::new(pb::LearnerStatus {
+            steps_inserted: s.steps_inserted(),
+            updates: training.updates,
+            buffer_size: len as u64,
+            buffer_capacity: capacity as u64,
+            insert_rate: training.insert_rate,
+            sample_rate: training.sample_rate,
+            limiter_state,
+            connected_actors: s.connected(),
+            rolling_return: rolling.mean_return,
+            success_rate: rolling.success_rate,
+            latest_snapshot,
+            best_snapshot,
+            critic_loss: training.critic_loss,
+            actor_loss: training.actor_loss,
+            mean_q: training.mean_q,
+            episodes: s.episodes().finished(),
+            malformed_batches: s.malformed(),
+            duplicate_batches: s.duplicates(),
+            explore_uniformly: s.explore_uniformly(),
+        }))
+    }
+}

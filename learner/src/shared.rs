@@ -1,0 +1,358 @@
+//! What the gRPC service and the training thread share: the replay, the
+//! rate limiter, the actors known by their ids, episode statistics, the
+//! published snapshots and the training status. Actors' batches enter here:
+//! each is validated whole before any step touches the replay.
+
+use crate::episodes::{Episode, Episodes};
+use crate::limiter::SharedLimiter;
+use crate::metrics::Metrics;
+use crate::replay::{Replay, Source};
+use crate::snapshots::Snapshots;
+use std::collections::{BTreeMap, HashMap};
+use std::sync::atomic::{AtomicBool, AtomicU32, AtomicU64, Ordering};
+use std::sync::{Mutex, MutexGuard};
+use std::time::Duration;
+use tonic::Status;
+use tweezer_gym::ObservationBounds;
+use tweezer_proto::pb;
+
+/// Most steps one batch may carry.
+pub const MAX_BATCH_STEPS: usize = 4096;
+
+/// Longest actor id.
+const MAX_ACTOR_ID: usize = 128;
+
+/// What training reports for status.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct TrainingStatus {
+    /// TD3 updates made.
+    pub updates: u64,
+    /// Recent mean critic loss.
+    pub critic_loss: f64,
+    /// Recent mean actor loss.
+    pub actor_loss: f64,
+    /// Recent mean Q of the sampled actions.
+    pub mean_q: f64,
+    /// Transitions inserted per second, recently.
+    pub insert_rate: f64,
+    /// Transitions sampled per second, recently.
+    pub sample_rate: f64,
+}
+
+/// An actor the learner has heard from.
+#[derive(Clone, Copy, Debug)]
+struct KnownActor {
+    source: Source,
+    /// The last batch stored.
+    last_sequence: Option<u64>,
+}
+
+/// The state a checkpoint takes of the shared parts, read consistently.
+#[derive(Debug)]
+pub struct Captured {
+    /// The replay's bytes, when asked for.
+    pub replay: Option<Vec<u8>>,
+    /// Transitions inserted since the run began.
+    pub steps_inserted: u64,
+    /// Finished episodes.
+    pub episodes: Episodes,
+    /// Each actor's last stored batch.
+    pub actors: BTreeMap<String, u64>,
+}
+
+/// The learner's shared state.
+#[derive(Debug)]
+pub struct Shared {
+    replay: Mutex<Replay>,
+    /// `None` while learning is paused: inserts are not rate limited.
+    limiter: Option<SharedLimiter>,
+    bounds: ObservationBounds,
+    actors: Mutex<HashMap<String, KnownActor>>,
+    episodes: Mutex<Episodes>,
+    steps_inserted: AtomicU64,
+    uniform_steps: u64,
+    connected: AtomicU32,
+    malformed: AtomicU64,
+    duplicates: AtomicU64,
+    snapshots: Option<Mutex<Snapshots>>,
+    training: Mutex<TrainingStatus>,
+    metrics: Metrics,
+    stopping: AtomicBool,
+}
+
+fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
+    m.lock().unwrap_or_else(|p| p.into_inner())
+}
+
+impl Shared {
+    /// Ingestion into `replay`, rate limited by `limiter` when given; no
+    /// snapshots, no metrics, actors told to explore uniformly throughout.
+    pub fn new(replay: Replay, limiter: Option<SharedLimiter>, bounds: ObservationBounds) -> Self {
+        Self {
+            replay: Mutex::new(replay),
+            limiter,
+            bounds,
+            actors: Mutex::new(HashMap::new()),
+            episodes: Mutex::new(Episodes::default()),
+            steps_inserted: AtomicU64::new(0),
+            uniform_steps: u64::MAX,
+            connected: AtomicU32::new(0),
+            malformed: AtomicU64::new(0),
+            duplicates: AtomicU64::new(0),
+            snapshots: None,
+            training: Mutex::new(TrainingStatus::default()),
+            metrics: Metrics::discard(),
+            stopping: AtomicBool::new(false),
+        }
+    }
+
+    /// Actors explore uniformly until `steps` transitions are inserted.
+    pub fn with_uniform_steps(mut self, steps: u64) -> Self {
+        self.uniform_steps = steps;
+        self
+    }
+
+    /// Serves and publishes into `snapshots`.
+    pub fn with_snapshots(mut self, snapshots: Snapshots) -> Self {
+        self.snapshots = Some(Mutex::new(snapshots));
+        self
+    }
+
+    /// Writes episode lines to `metrics`.
+    pub fn with_metrics(mut self, metrics: Metrics) -> Self {
+        self.metrics = metrics;
+        self
+    }
+
+    /// Continues the counters a checkpoint captured.
+    pub fn with_restored(
+        self,
+        steps_inserted: u64,
+        episodes: Episodes,
+        actors: &BTreeMap<String, u64>,
+    ) -> Self {
+        self.steps_inserted.store(steps_inserted, Ordering::Relaxed);
+        *lock(&self.episodes) = episodes;
+        let mut known = lock(&self.actors);
+        for (id, &sequence) in actors {
+            let source = known.len() as Source;
+            known.insert(
+                id.clone(),
+                KnownActor {
+                    source,
+                    last_sequence: Some(sequence),
+                },
+            );
+        }
+        drop(known);
+        self
+    }
+
+    /// The replay.
+    pub fn replay(&self) -> MutexGuard<'_, Replay> {
+        lock(&self.replay)
+    }
+
+    /// The rate limiter, unless learning is paused.
+    pub fn limiter(&self) -> Option<&SharedLimiter> {
+        self.limiter.as_ref()
+    }
+
+    /// The snapshots, when this learner publishes any.
+    pub fn snapshots(&self) -> Option<MutexGuard<'_, Snapshots>> {
+        self.snapshots.as_ref().map(lock)
+    }
+
+    /// The metrics file.
+    pub fn metrics(&self) -> &Metrics {
+        &self.metrics
+    }
+
+    /// Batches refused as malformed.
+    pub fn malformed(&self) -> u64 {
+        self.malformed.load(Ordering::Relaxed)
+    }
+
+    /// Batches acknowledged without storing because they were stored before.
+    pub fn duplicates(&self) -> u64 {
+        self.duplicates.load(Ordering::Relaxed)
+    }
+
+    /// Transitions inserted since the run began.
+    pub fn steps_inserted(&self) -> u64 {
+        self.steps_inserted.load(Ordering::Relaxed)
+    }
+
+    /// Actor streams open now.
+    pub fn connected(&self) -> u32 {
+        self.connected.load(Ordering::Relaxed)
+    }
+
+    pub(crate) fn stream_opened(&self) {
+        self.connected.fetch_add(1, Ordering::Relaxed);
+    }
+
+    pub(crate) fn stream_closed(&self) {
+        self.connected.fetch_sub(1, Ordering::Relaxed);
+    }
+
+    /// Episode statistics.
+    pub fn episodes(&self) -> MutexGuard<'_, Episodes> {
+        lock(&self.episodes)
+    }
+
+    /// Training status.
+    pub fn training(&self) -> MutexGuard<'_, TrainingStatus> {
+        lock(&self.training)
+    }
+
+    /// Whether actors should still act uniformly at random.
+    pub fn explore_uniformly(&self) -> bool {
+        self.steps_inserted() < self.uniform_steps
+    }
+
+    /// Tells waiting producers to give up: the learner is shutting down.
+    pub fn stop(&self) {
+        self.stopping.store(true, Ordering::Relaxed);
+    }
+
+    /// Whether [`Self::stop`] was called.
+    pub fn stopping(&self) -> bool {
+        self.stopping.load(Ordering::Relaxed)
+    }
+
+    /// Reads what a checkpoint needs, the replay locked throughout so that
+    /// the actors' sequence numbers match its contents.
+    pub fn capture(&self, with_replay: bool) -> Captured {
+        let replay = self.replay();
+        let actors = lock(&self.actors)
+            .iter()
+            .filter_map(|(id, a)| a.last_sequence.map(|s| (id.clone(), s)))
+            .collect();
+        Captured {
+            replay: with_replay.then(|| replay.encode()),
+            steps_inserted: self.steps_inserted(),
+            episodes: self.episodes().clone(),
+            actors,
+        }
+    }
+
+    /// The ack for a batch: its sequence, the newest snapshot, the phase.
+    fn ack(&self, sequence: u64) -> pb::StepAck {
+        pb::StepAck {
+            sequence,
+            snapshot_version: self.snapshots().map_or(0, |s| s.latest_version()),
+            explore_uniformly: self.explore_uniformly(),
+        }
+    }
+
+    /// Validates and stores one batch of the stream that `stream_actor`
+    /// identifies (set by the stream's first batch), waiting for the rate
+    /// limiter. A batch stored before (same actor, sequence not above the
+    /// last stored) is acknowledged and not stored again. `closed` says the
+    /// client went away: a producer waiting on back-pressure then gives up.
+    pub fn accept(
+        &self,
+        batch: &pb::StepBatch,
+        stream_actor: &mut Option<String>,
+        closed: impl Fn() -> bool,
+    ) -> Result<pb::StepAck, Status> {
+        let refuse = |status: Status| {
+            self.malformed.fetch_add(1, Ordering::Relaxed);
+            status
+        };
+        let (actor, sequence, steps) =
+            tweezer_proto::step_batch_from_wire(batch, &self.bounds, MAX_BATCH_STEPS)
+                .map_err(|e| refuse(e.into()))?;
+        check_actor_id(&actor).map_err(refuse)?;
+        match stream_actor {
+            Some(bound) if *bound != actor => {
+                return Err(refuse(Status::invalid_argument(format!(
+                    "actor_id: unknown actor `{actor}` on a stream opened by `{bound}`"
+                ))));
+            }
+            Some(_) => {}
+            None => *stream_actor = Some(actor.clone()),
+        }
+        if let Some(i) = steps.iter().position(|s| Replay::admits(s).is_err()) {
+            let reason = Replay::admits(&steps[i]).expect_err("just failed");
+            return Err(refuse(Status::invalid_argument(format!(
+                "steps[{i}]: {reason}"
+            ))));
+        }
+        if self.stored_before(&actor, sequence) {
+            self.duplicates.fetch_add(1, Ordering::Relaxed);
+            return Ok(self.ack(sequence));
+        }
+        if let Some(limiter) = &self.limiter {
+            while !limiter.wait_to_insert(steps.len() as u64, Duration::from_millis(100)) {
+                if closed() {
+                    return Err(Status::cancelled("the actor closed its stream"));
+                }
+                if self.stopping() {
+                    return Err(Status::unavailable("the learner is shutting down"));
+                }
+            }
+        }
+        let mut finished: Vec<Episode> = Vec::new();
+        let len = {
+            let mut replay = self.replay();
+            let mut actors = lock(&self.actors);
+            let next_source = actors.len() as Source;
+            let known = actors.entry(actor).or_insert(KnownActor {
+                source: next_source,
+                last_sequence: None,
+            });
+            if known.last_sequence.is_some_and(|last| sequence <= last) {
+                // Another stream of the same actor stored it meanwhile.
+                self.duplicates.fetch_add(1, Ordering::Relaxed);
+                return Ok(self.ack(sequence));
+            }
+            known.last_sequence = Some(sequence);
+            let source = known.source;
+            drop(actors);
+            let mut episodes = self.episodes();
+            for step in &steps {
+                replay
+                    .insert(source, step)
+                    .expect("steps were checked against the replay's limits");
+                finished.extend(episodes.step(source, step));
+            }
+            self.steps_inserted
+                .fetch_add(steps.len() as u64, Ordering::Relaxed);
+            replay.len()
+        };
+        if let Some(limiter) = &self.limiter {
+            limiter.replay_len(len);
+        }
+        for episode in finished {
+            self.metrics.write("episode", episode);
+        }
+        Ok(self.ack(sequence))
+    }
+
+    fn stored_before(&self, actor: &str, sequence: u64) -> bool {
+        lock(&self.actors)
+            .get(actor)
+            .and_then(|a| a.last_sequence)
+            .is_some_and(|last| sequence <= last)
+    }
+}
+
+/// Actor ids are 1 to 128 characters of letters, digits and `.`, `_`, `-`,
+/// `:` (host names, pod names, Slurm task ids).
+fn check_actor_id(id: &str) -> Result<(), Status> {
+    let ok = !id.is_empty()
+        && id.len() <= MAX_ACTOR_ID
+        && id
+            .bytes()
+            .all(|b| b.is_ascii_alphanumeric() || b"._-:".contains(&b));
+    if ok {
+        Ok(())
+    } else {
+        Err(Status::invalid_argument(format!(
+            "actor_id: `{}` is not a valid actor id (1-{MAX_ACTOR_ID} letters, digits, `.`, `_`, `-`, `:`)",
+            id.chars().take(MAX_ACTOR_ID).collect::<String>()
+        )))
+    }
+}

@@ -1,0 +1,247 @@
+//! Published policy snapshots: every `every_updates` updates the actor's
+//! weights become a new version, written to the run directory and kept in
+//! memory for serving. `best` is the snapshot published at the highest
+//! rolling return (the model the paper took to the microscope); it is kept on
+//! disk, also as `best.safetensors`, whatever the pruning of older versions.
+
+use crate::fsio::write_atomic;
+use serde::{Deserialize, Serialize};
+use std::collections::VecDeque;
+use std::io::{self, Write};
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+use tweezer_nets::{SnapshotInfo, file_sha256, read_info};
+
+/// A snapshot ready to serve.
+#[derive(Debug)]
+pub struct Published {
+    /// Its metadata.
+    pub info: SnapshotInfo,
+    /// The safetensors file.
+    pub bytes: Vec<u8>,
+    /// SHA-256 of `bytes`, lowercase hex.
+    pub sha256: String,
+}
+
+impl Published {
+    fn new(bytes: Vec<u8>) -> Result<Self, SnapshotsError> {
+        let info = read_info(&bytes).map_err(|e| SnapshotsError::Corrupt(e.to_string()))?;
+        Ok(Self {
+            sha256: file_sha256(&bytes),
+            info,
+            bytes,
+        })
+    }
+}
+
+/// Which snapshot a client asks for.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Selector {
+    /// The newest.
+    Latest,
+    /// The one published at the highest rolling return.
+    Best,
+    /// An exact version.
+    Version(u64),
+}
+
+/// A snapshot that cannot be had.
+#[derive(Debug, thiserror::Error)]
+pub enum SnapshotsError {
+    /// None published yet, or that version is no longer kept.
+    #[error("{0}")]
+    NotFound(String),
+    /// A file could not be written or read.
+    #[error("snapshot file {path}: {source}")]
+    Io {
+        /// The file.
+        path: PathBuf,
+        /// Why.
+        source: io::Error,
+    },
+    /// A kept file is not a snapshot.
+    #[error("snapshot file is corrupt: {0}")]
+    Corrupt(String),
+}
+
+/// What a checkpoint keeps of the store: enough to find the files again.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct SnapshotsState {
+    /// Versions on disk, oldest first.
+    pub kept: Vec<u64>,
+    /// The newest version.
+    pub latest: Option<u64>,
+    /// The best version and the rolling return it was published at.
+    pub best: Option<(u64, f64)>,
+}
+
+/// The run's snapshots.
+#[derive(Debug)]
+pub struct Snapshots {
+    dir: PathBuf,
+    keep: usize,
+    kept: VecDeque<u64>,
+    latest: Option<Arc<Published>>,
+    best: Option<(Arc<Published>, f64)>,
+}
+
+impl Snapshots {
+    /// An empty store writing into `dir` (created if missing), keeping the
+    /// newest `keep` files besides the best.
+    pub fn create(dir: &Path, keep: usize) -> Result<Self, SnapshotsError> {
+        std::fs::create_dir_all(dir).map_err(|source| SnapshotsError::Io {
+            path: dir.into(),
+            source,
+        })?;
+        Ok(Self {
+            dir: dir.into(),
+            keep,
+            kept: VecDeque::new(),
+            latest: None,
+            best: None,
+        })
+    }
+
+    /// The store as a checkpoint left it, its latest and best files read
+    /// back from `dir`.
+    pub fn restore(
+        dir: &Path,
+        keep: usize,
+        state: &SnapshotsState,
+    ) -> Result<Self, SnapshotsError> {
+        let mut store = Self::create(dir, keep)?;
+        store.kept = state.kept.iter().copied().collect();
+        store.latest = state.latest.map(|v| store.read(v)).transpose()?;
+        store.best = state
+            .best
+            .map(|(v, r)| store.read(v).map(|p| (p, r)))
+            .transpose()?;
+        Ok(store)
+    }
+
+    /// The state a checkpoint needs.
+    pub fn state(&self) -> SnapshotsState {
+        SnapshotsState {
+            kept: self.kept.iter().copied().collect(),
+            latest: self.latest.as_ref().map(|p| p.info.version),
+            best: self.best.as_ref().map(|(p, r)| (p.info.version, *r)),
+        }
+    }
+
+    /// The version the next snapshot gets.
+    pub fn next_version(&self) -> u64 {
+        self.latest.as_ref().map_or(1, |p| p.info.version + 1)
+    }
+
+    /// The path of version `version`.
+    pub fn path(&self, version: u64) -> PathBuf {
+        self.dir.join(format!("v{version:06}.safetensors"))
+    }
+
+    fn read(&self, version: u64) -> Result<Arc<Published>, SnapshotsError> {
+        let path = self.path(version);
+        let bytes = std::fs::read(&path).map_err(|source| SnapshotsError::Io {
+            path: path.clone(),
+            source,
+        })?;
+        let published = Published::new(bytes)?;
+        if published.info.version != version {
+            return Err(SnapshotsError::Corrupt(format!(
+                "{} holds version {}",
+                path.display(),
+                published.info.version
+            )));
+        }
+        Ok(Arc::new(published))
+    }
+
+    fn write(&self, path: &Path, bytes: &[u8]) -> Result<(), SnapshotsError> {
+        write_atomic(path, |w: &mut dyn Write| w.write_all(bytes)).map_err(|source| {
+            SnapshotsError::Io {
+                path: path.into(),
+                source,
+            }
+        })
+    }
+
+    /// Publishes `bytes` (an encoded snapshot of version
+    /// [`Self::next_version`]); it becomes `best` when `rolling_return` beats
+    /// the best so far. Returns the published snapshot and whether it is the
+    /// new best.
+    pub fn publish(
+        &mut self,
+        bytes: Vec<u8>,
+        rolling_return: Option<f64>,
+    ) -> Result<(Arc<Published>, bool), SnapshotsError> {
+        let published = Arc::new(Published::new(bytes)?);
+        let version = published.info.version;
+        self.write(&self.path(version), &published.bytes)?;
+        self.kept.push_back(version);
+        self.latest = Some(published.clone());
+        let is_best = match (rolling_return, &self.best) {
+            (Some(r), Some((_, best))) => r >= *best,
+            (Some(_), None) => true,
+            (None, _) => false,
+        };
+        if let (true, Some(r)) = (is_best, rolling_return) {
+            self.write(&self.dir.join("best.safetensors"), &published.bytes)?;
+            self.best = Some((published.clone(), r));
+        }
+        self.prune();
+        Ok((published, is_best))
+    }
+
+    /// Deletes the oldest files beyond `keep`, never the best's.
+    fn prune(&mut self) {
+        let best = self.best.as_ref().map(|(p, _)| p.info.version);
+        let others = |kept: &VecDeque<u64>| kept.iter().filter(|&&v| Some(v) != best).count();
+        while others(&self.kept) > self.keep {
+            let Some(position) = self.kept.iter().position(|&v| Some(v) != best) else {
+                break;
+            };
+            if let Some(version) = self.kept.remove(position) {
+                let _ = std::fs::remove_file(self.path(version));
+            }
+        }
+    }
+
+    /// The snapshot `selector` names.
+    pub fn get(&self, selector: Selector) -> Result<Arc<Published>, SnapshotsError> {
+        let none = || SnapshotsError::NotFound("no policy snapshot has been published yet".into());
+        match selector {
+            Selector::Latest => self.latest.clone().ok_or_else(none),
+            Selector::Best => match &self.best {
+                Some((p, _)) => Ok(p.clone()),
+                None if self.latest.is_some() => Err(SnapshotsError::NotFound(
+                    "no snapshot has a best yet: none was published after an episode finished"
+                        .into(),
+                )),
+                None => Err(none()),
+            },
+            Selector::Version(v) => {
+                for p in self.latest.iter().chain(self.best.iter().map(|(p, _)| p)) {
+                    if p.info.version == v {
+                        return Ok(p.clone());
+                    }
+                }
+                if !self.kept.contains(&v) {
+                    return Err(SnapshotsError::NotFound(format!(
+                        "snapshot version {v} is not kept (kept: {:?})",
+                        self.kept
+                    )));
+                }
+                self.read(v)
+            }
+        }
+    }
+
+    /// The latest version, or 0 before the first.
+    pub fn latest_version(&self) -> u64 {
+        self.latest.as_ref().map_or(0, |p| p.info.version)
+    }
+
+    /// The best version, or 0 before there is one.
+    pub fn best_version(&self) -> u64 {
+        self.best.as_ref().map_or(0, |(p, _)| p.info.version)
+    }
+}
