@@ -57,6 +57,12 @@ enum Command {
     },
 }
 
+/// mimalloc keeps freed pages for reuse: a TD3 update allocates and frees
+/// hundreds of megabytes of tensors, and with glibc's malloc the pages of
+/// each were faulted in afresh (an update took 2.0 s instead of 1.6 s).
+#[global_allocator]
+static ALLOCATOR: mimalloc::MiMalloc = mimalloc::MiMalloc;
+
 fn main() -> anyhow::Result<()> {
     let cli = Cli::parse();
     init_logging(cli.log_json);

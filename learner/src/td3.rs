@@ -334,9 +334,14 @@ impl Td3 {
         let mut actor_loss = None;
         if self.updates.is_multiple_of(c.policy_delay) {
             // Actor loss: −Q1(s, π(s)), plus the optional action penalty.
+            // Q1's image features do not depend on π: computed detached,
+            // the backward pass skips Q1's encoder (its gradients would be
+            // thrown away).
             let pi = self.actor.forward(image.clone(), vector.clone());
             let penalty = pi.clone().powi_scalar(2).mean() * c.action_l2;
-            let loss = self.critics.q1.forward(image, vector, pi).mean().neg() + penalty;
+            let features = self.critics.q1.encode(image).detach();
+            let q = self.critics.q1.forward_features(features, vector, pi);
+            let loss = q.mean().neg() + penalty;
             actor_loss = Some(scalar(&loss));
             let grads = GradientsParams::from_grads(loss.backward(), &self.actor);
             self.actor = self.actor_optim.step(c.actor_lr, self.actor.clone(), grads);

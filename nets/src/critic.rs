@@ -44,8 +44,23 @@ impl Critic {
     /// - `action`: `[batch, 2]`
     /// - output: `[batch, 1]`
     pub fn forward(&self, image: Tensor<4>, vector: Tensor<2>, action: Tensor<2>) -> Tensor<2> {
-        let x = self.encoder.forward(image); // [batch, 512]
-        let x = Tensor::cat(vec![x, vector, action], 1); // [batch, 516]
+        self.forward_features(self.encode(image), vector, action)
+    }
+
+    /// The image features (`[batch, 512]`): what [`Self::forward`] computes
+    /// first, and what does not depend on the action.
+    pub fn encode(&self, image: Tensor<4>) -> Tensor<2> {
+        self.encoder.forward(image)
+    }
+
+    /// Q from image features, target vector and action.
+    pub fn forward_features(
+        &self,
+        features: Tensor<2>,
+        vector: Tensor<2>,
+        action: Tensor<2>,
+    ) -> Tensor<2> {
+        let x = Tensor::cat(vec![features, vector, action], 1); // [batch, 516]
         self.head.forward(x) // [batch, 1]
     }
 }
