@@ -1,17 +1,21 @@
-//! The actor process. Today: evaluation of baseline policies, the
-//! environment benchmark and the demo; streaming to the learner comes with
-//! the actor issue.
+//! The actor process: streams steps to the learner (`run`), evaluates
+//! policies, benchmarks the environment and draws the demo.
 
 mod bench;
+mod config;
 mod demo;
+mod stream;
 
 use anyhow::{Context, bail};
 use burn::tensor::Device;
 use clap::{Parser, Subcommand};
+use config::ActorFile;
 use std::path::{Path, PathBuf};
+use std::sync::Arc;
+use std::sync::atomic::AtomicBool;
 use std::time::Duration;
 use tweezer_gym::{
-    ConfigArgs, EnvConfig, EvalSummary, Greedy, Policy, Renderer, Seeds, UniformRandom, evaluate,
+    EnvConfig, EvalSummary, Greedy, Policy, Renderer, Seeds, UniformRandom, evaluate, init_logging,
 };
 use tweezer_nets::NetworkPolicy;
 
@@ -19,14 +23,31 @@ use tweezer_nets::NetworkPolicy;
 #[derive(Parser)]
 #[command(version, about)]
 struct Cli {
-    #[command(flatten)]
-    config: ConfigArgs,
+    /// TOML config file: `[env]` and `[actor]` tables over SPEC defaults.
+    #[arg(long, global = true, value_name = "FILE")]
+    config: Option<PathBuf>,
     #[command(subcommand)]
     command: Command,
 }
 
 #[derive(Subcommand)]
 enum Command {
+    /// Stream steps to the learner until SIGINT or SIGTERM (or --steps),
+    /// then print a JSON report.
+    Run {
+        /// The learner's address instead of `actor.learner`.
+        #[arg(long, value_name = "URL")]
+        learner: Option<String>,
+        /// This actor's id instead of `actor.id`.
+        #[arg(long)]
+        id: Option<String>,
+        /// Stop once the learner has acknowledged this many steps.
+        #[arg(long)]
+        steps: Option<u64>,
+        /// Log as JSON lines instead of text.
+        #[arg(long)]
+        log_json: bool,
+    },
     /// Evaluate a policy over a list of episode seeds.
     Eval {
         /// `greedy` (straight at the target), `random` (uniform actions), or
@@ -103,8 +124,28 @@ fn print_summary(summary: &EvalSummary, json: bool) -> anyhow::Result<()> {
 
 fn main() -> anyhow::Result<()> {
     let cli = Cli::parse();
-    let config = cli.config.load()?;
+    let mut config = ActorFile::load(cli.config.as_deref())?;
     match cli.command {
+        Command::Run {
+            learner,
+            id,
+            steps,
+            log_json,
+        } => {
+            init_logging(log_json);
+            if let Some(url) = learner {
+                config.actor.learner = url;
+            }
+            if let Some(id) = id {
+                config.actor.id = id;
+            }
+            config.actor.validate().map_err(|e| e.in_table("actor"))?;
+            if steps == Some(0) {
+                bail!("--steps must be at least 1");
+            }
+            let report = stream::run(config, steps, Arc::new(AtomicBool::new(false)))?;
+            println!("{}", serde_json::to_string(&report)?);
+        }
         Command::Eval {
             policy,
             seeds,

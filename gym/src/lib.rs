@@ -9,6 +9,8 @@ mod action;
 mod config;
 mod env;
 mod eval;
+#[cfg(feature = "cli")]
+mod logging;
 mod num;
 mod observation;
 mod policy;
@@ -29,6 +31,8 @@ pub use config::{
 };
 pub use env::{Env, EpisodeError, EpisodeOver, Layout, Outcome, RewardParts, StepResult, Target};
 pub use eval::{EvalSummary, evaluate};
+#[cfg(feature = "cli")]
+pub use logging::init_logging;
 pub use observation::{Observation, ObservationBounds, ObservationError};
 pub use policy::{Greedy, Policy, UniformRandom};
 pub use render::{Frame, Pixel, Renderer, SizeMismatch};

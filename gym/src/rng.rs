@@ -27,6 +27,12 @@ impl SplitMix64 {
         Self { state: seed }
     }
 
+    /// A standard normal draw (Box–Muller, one of the pair).
+    pub fn normal(&mut self) -> f64 {
+        let (u, v) = (self.unit().max(f64::MIN_POSITIVE), self.unit());
+        (-2.0 * u.ln()).sqrt() * (std::f64::consts::TAU * v).cos()
+    }
+
     /// The state: `SplitMix64::new(state)` continues this stream.
     pub fn state(&self) -> u64 {
         self.state

@@ -27,6 +27,8 @@ use tweezer_proto::pb::learner_server::LearnerServer;
 const CHECKPOINTS: &str = "checkpoints";
 const SNAPSHOTS: &str = "snapshots";
 const METRICS: &str = "metrics.jsonl";
+/// How long clients may take to hang up once the learner stops.
+const SHUTDOWN_GRACE: std::time::Duration = std::time::Duration::from_secs(3);
 /// The effective config, written when a run starts.
 pub const CONFIG: &str = "config.toml";
 
@@ -92,7 +94,7 @@ pub fn serve(file: LearnerFile, resume: bool) -> anyhow::Result<()> {
         let shutdown = async move {
             tokio::select! {
                 signal = stop_signal() => tracing::info!(signal, "stopping: finishing the update in flight and writing a checkpoint"),
-                _ = closed(&stopped) => {}
+                () = stopped.stopped() => {}
             }
             stopped.stop();
         };
@@ -100,7 +102,17 @@ pub fn serve(file: LearnerFile, resume: bool) -> anyhow::Result<()> {
             .add_service(health_service)
             .add_service(LearnerServer::new(LearnerService::new(shared.clone())))
             .serve_with_incoming_shutdown(TcpListenerStream::new(listener), shutdown);
-        let served = server.await;
+        // Clients get a grace period to hang up; one that never does (an
+        // idle connection nobody drives) must not keep the learner alive.
+        let grace = async {
+            shared.stopped().await;
+            tokio::time::sleep(SHUTDOWN_GRACE).await;
+            tracing::warn!("closing connections still open after the shutdown grace period");
+        };
+        let served = tokio::select! {
+            served = server => served,
+            () = grace => Ok(()),
+        };
         shared.stop();
         let trained = trained_rx.await.unwrap_or_else(|_| {
             Err(anyhow::anyhow!("the training thread ended without a result"))
@@ -172,13 +184,6 @@ fn shared_state(
         ),
         None => shared,
     })
-}
-
-/// Resolves when training has stopped by itself (an error).
-async fn closed(shared: &Shared) {
-    while !shared.stopping() {
-        tokio::time::sleep(std::time::Duration::from_millis(100)).await;
-    }
 }
 
 /// Waits for SIGINT or SIGTERM; names the one that came.

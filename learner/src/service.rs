@@ -72,7 +72,17 @@ impl Learner for LearnerService {
         tokio::spawn(async move {
             shared.stream_opened();
             let mut actor = None;
-            while let Ok(Some(batch)) = inbound.message().await {
+            loop {
+                let batch = tokio::select! {
+                    message = inbound.message() => match message {
+                        Ok(Some(batch)) => batch,
+                        _ => break,
+                    },
+                    () = shared.stopped() => {
+                        let _ = tx.send(Err(Status::unavailable("the learner is shutting down"))).await;
+                        break;
+                    }
+                };
                 let (s, t) = (shared.clone(), tx.clone());
                 let result = tokio::task::spawn_blocking(move || {
                     let ack = s.accept(&batch, &mut actor, || t.is_closed());

@@ -9,18 +9,12 @@ use crate::metrics::Metrics;
 use crate::replay::{Replay, Source};
 use crate::snapshots::Snapshots;
 use std::collections::{BTreeMap, HashMap};
-use std::sync::atomic::{AtomicBool, AtomicU32, AtomicU64, Ordering};
+use std::sync::atomic::{AtomicU32, AtomicU64, Ordering};
 use std::sync::{Mutex, MutexGuard};
 use std::time::Duration;
 use tonic::Status;
 use tweezer_gym::ObservationBounds;
 use tweezer_proto::pb;
-
-/// Most steps one batch may carry.
-pub const MAX_BATCH_STEPS: usize = 4096;
-
-/// Longest actor id.
-const MAX_ACTOR_ID: usize = 128;
 
 /// What training reports for status.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
@@ -77,7 +71,7 @@ pub struct Shared {
     snapshots: Option<Mutex<Snapshots>>,
     training: Mutex<TrainingStatus>,
     metrics: Metrics,
-    stopping: AtomicBool,
+    stopping: tokio::sync::watch::Sender<bool>,
 }
 
 fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
@@ -102,7 +96,7 @@ impl Shared {
             snapshots: None,
             training: Mutex::new(TrainingStatus::default()),
             metrics: Metrics::discard(),
-            stopping: AtomicBool::new(false),
+            stopping: tokio::sync::watch::Sender::new(false),
         }
     }
 
@@ -211,14 +205,21 @@ impl Shared {
         self.steps_inserted() < self.uniform_steps
     }
 
-    /// Tells waiting producers to give up: the learner is shutting down.
+    /// Tells waiting producers and open streams to give up: the learner is
+    /// shutting down.
     pub fn stop(&self) {
-        self.stopping.store(true, Ordering::Relaxed);
+        self.stopping.send_replace(true);
     }
 
     /// Whether [`Self::stop`] was called.
     pub fn stopping(&self) -> bool {
-        self.stopping.load(Ordering::Relaxed)
+        *self.stopping.borrow()
+    }
+
+    /// Resolves once [`Self::stop`] is called.
+    pub async fn stopped(&self) {
+        let mut stopping = self.stopping.subscribe();
+        let _ = stopping.wait_for(|s| *s).await;
     }
 
     /// Reads what a checkpoint needs, the replay locked throughout so that
@@ -261,10 +262,12 @@ impl Shared {
             self.malformed.fetch_add(1, Ordering::Relaxed);
             status
         };
-        let (actor, sequence, steps) =
-            tweezer_proto::step_batch_from_wire(batch, &self.bounds, MAX_BATCH_STEPS)
-                .map_err(|e| refuse(e.into()))?;
-        check_actor_id(&actor).map_err(refuse)?;
+        let (actor, sequence, steps) = tweezer_proto::step_batch_from_wire(
+            batch,
+            &self.bounds,
+            tweezer_proto::MAX_BATCH_STEPS,
+        )
+        .map_err(|e| refuse(e.into()))?;
         match stream_actor {
             Some(bound) if *bound != actor => {
                 return Err(refuse(Status::invalid_argument(format!(
@@ -336,23 +339,5 @@ impl Shared {
             .get(actor)
             .and_then(|a| a.last_sequence)
             .is_some_and(|last| sequence <= last)
-    }
-}
-
-/// Actor ids are 1 to 128 characters of letters, digits and `.`, `_`, `-`,
-/// `:` (host names, pod names, Slurm task ids).
-fn check_actor_id(id: &str) -> Result<(), Status> {
-    let ok = !id.is_empty()
-        && id.len() <= MAX_ACTOR_ID
-        && id
-            .bytes()
-            .all(|b| b.is_ascii_alphanumeric() || b"._-:".contains(&b));
-    if ok {
-        Ok(())
-    } else {
-        Err(Status::invalid_argument(format!(
-            "actor_id: `{}` is not a valid actor id (1-{MAX_ACTOR_ID} letters, digits, `.`, `_`, `-`, `:`)",
-            id.chars().take(MAX_ACTOR_ID).collect::<String>()
-        )))
     }
 }

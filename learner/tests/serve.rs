@@ -133,12 +133,6 @@ fn run_dir() -> (tempfile::TempDir, PathBuf, PathBuf) {
     (dir, run, config)
 }
 
-/// A standard normal draw.
-fn normal(rng: &mut SplitMix64) -> f32 {
-    let (u, v) = (rng.unit().max(1e-12), rng.unit());
-    ((-2.0 * u.ln()).sqrt() * (std::f64::consts::TAU * v).cos()) as f32
-}
-
 /// Streams steps from 8 environments as actor `actor` until the learner has
 /// made `updates` updates; returns the last status. Actions are uniformly
 /// random while the learner says so, then greedy plus Gaussian noise.
@@ -162,7 +156,7 @@ async fn feed(learner: &Learner, actor: &str, updates: u64) -> pb::LearnerStatus
                     [0.0, 0.0].map(|_: f32| 2.0 * rng.unit() as f32 - 1.0)
                 } else {
                     let [x, y] = Greedy::action(o).components();
-                    [x + 0.5 * normal(&mut rng), y + 0.5 * normal(&mut rng)]
+                    [x + 0.5 * rng.normal() as f32, y + 0.5 * rng.normal() as f32]
                 };
                 *a = Action::clipped(x, y).unwrap();
             }

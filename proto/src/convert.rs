@@ -179,6 +179,35 @@ pub fn step_to_wire(step: &StepRecord) -> pb::Step {
     }
 }
 
+/// Most steps one batch may carry.
+pub const MAX_BATCH_STEPS: usize = 4096;
+
+/// Longest actor id.
+pub const MAX_ACTOR_ID: usize = 128;
+
+/// Actor ids are 1 to 128 characters of letters, digits and `.`, `_`, `-`,
+/// `:` (host names, pod names, Slurm task ids).
+pub fn check_actor_id(id: &str) -> Result<(), WireError> {
+    if id.is_empty() {
+        return Err(WireError::new("actor_id", "empty"));
+    }
+    let ok = id.len() <= MAX_ACTOR_ID
+        && id
+            .bytes()
+            .all(|b| b.is_ascii_alphanumeric() || b"._-:".contains(&b));
+    if ok {
+        Ok(())
+    } else {
+        Err(WireError::new(
+            "actor_id",
+            format!(
+                "`{}` is not a valid actor id (1-{MAX_ACTOR_ID} letters, digits, `.`, `_`, `-`, `:`)",
+                id.chars().take(MAX_ACTOR_ID).collect::<String>()
+            ),
+        ))
+    }
+}
+
 /// Decodes and validates a batch: a non-empty actor id, at most `max_steps`
 /// steps, each step valid. Returns the actor id, the sequence number and the
 /// steps.
@@ -187,9 +216,7 @@ pub fn step_batch_from_wire(
     bounds: &ObservationBounds,
     max_steps: usize,
 ) -> Result<(String, u64, Vec<StepRecord>), WireError> {
-    if msg.actor_id.trim().is_empty() {
-        return Err(WireError::new("actor_id", "empty"));
-    }
+    check_actor_id(&msg.actor_id)?;
     if msg.steps.len() > max_steps {
         return Err(WireError::new(
             "steps",

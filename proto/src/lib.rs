@@ -10,8 +10,9 @@ mod convert;
 mod snapshot_download;
 
 pub use convert::{
-    WireError, action_from_wire, action_to_wire, observation_from_wire, observation_to_wire,
-    outcome_to_wire, step_batch_from_wire, step_from_wire, step_to_wire,
+    MAX_ACTOR_ID, MAX_BATCH_STEPS, WireError, action_from_wire, action_to_wire, check_actor_id,
+    observation_from_wire, observation_to_wire, outcome_to_wire, step_batch_from_wire,
+    step_from_wire, step_to_wire,
 };
 pub use snapshot_download::{DownloadError, download_snapshot};
 

@@ -1,0 +1,120 @@
+//! The actor's config file: an `[env]` table and an `[actor]` table.
+
+use serde::{Deserialize, Serialize};
+use std::path::Path;
+use tweezer_gym::{ConfigError, EnvConfig, read_toml};
+
+/// The whole file.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct ActorFile {
+    /// The environment the actor steps (the learner's must match).
+    pub env: EnvConfig,
+    /// How the actor streams to the learner.
+    pub actor: ActorConfig,
+}
+
+impl ActorFile {
+    /// The defaults, or the validated contents of `path`.
+    pub fn load(path: Option<&Path>) -> Result<Self, ConfigError> {
+        let config: Self = match path {
+            Some(path) => read_toml(path)?,
+            None => Self::default(),
+        };
+        config.env.validate().map_err(|e| e.in_table("env"))?;
+        config.actor.validate().map_err(|e| e.in_table("actor"))?;
+        Ok(config)
+    }
+
+    /// The configuration as TOML, every default written out.
+    pub fn to_toml(&self) -> String {
+        toml::to_string(self).expect("every config field is TOML-representable")
+    }
+}
+
+/// Streaming to the learner.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct ActorConfig {
+    /// The learner's gRPC address.
+    pub learner: String,
+    /// This actor's identity (letters, digits, `.`, `_`, `-`, `:`).
+    pub id: String,
+    /// Environments stepped together.
+    pub envs: usize,
+    /// Steps per batch sent.
+    pub batch_steps: usize,
+    /// Batches in flight before the actor waits for acknowledgements: the
+    /// bound on its memory when the learner applies back-pressure.
+    pub max_unacked: usize,
+    /// Seed of the episodes and of the exploration noise.
+    pub seed: u64,
+    /// Standard deviation of the Gaussian action noise (SPEC §4: 0.1).
+    pub noise: f64,
+    /// First wait before reconnecting, ms; doubles up to `reconnect_max_ms`.
+    pub reconnect_initial_ms: u64,
+    /// Longest wait before reconnecting, ms.
+    pub reconnect_max_ms: u64,
+}
+
+impl Default for ActorConfig {
+    fn default() -> Self {
+        Self {
+            learner: "http://127.0.0.1:50051".into(),
+            id: "actor-0".into(),
+            envs: 16,
+            batch_steps: 256,
+            max_unacked: 4,
+            seed: 0,
+            noise: 0.1,
+            reconnect_initial_ms: 100,
+            reconnect_max_ms: 10_000,
+        }
+    }
+}
+
+impl ActorConfig {
+    /// Checks every field; the error names the first one out of range.
+    pub fn validate(&self) -> Result<(), ConfigError> {
+        let invalid = |field: &str, reason: String| {
+            Err(ConfigError::Invalid {
+                field: field.into(),
+                reason,
+            })
+        };
+        if !(self.learner.starts_with("http://") || self.learner.starts_with("https://")) {
+            return invalid(
+                "learner",
+                format!("`{}` is not an http:// or https:// URL", self.learner),
+            );
+        }
+        if let Err(e) = tweezer_proto::check_actor_id(&self.id) {
+            return invalid("id", e.reason);
+        }
+        if self.envs == 0 {
+            return invalid("envs", "must be at least 1".into());
+        }
+        if !(1..=tweezer_proto::MAX_BATCH_STEPS).contains(&self.batch_steps) {
+            return invalid(
+                "batch_steps",
+                format!("must be 1 to {}", tweezer_proto::MAX_BATCH_STEPS),
+            );
+        }
+        if self.max_unacked == 0 {
+            return invalid("max_unacked", "must be at least 1".into());
+        }
+        if !(self.noise.is_finite() && self.noise >= 0.0) {
+            return invalid(
+                "noise",
+                format!("must be finite and >= 0, got {}", self.noise),
+            );
+        }
+        if self.reconnect_initial_ms == 0 || self.reconnect_max_ms < self.reconnect_initial_ms {
+            return invalid(
+                "reconnect_max_ms",
+                "reconnect_initial_ms must be >= 1 and reconnect_max_ms at least as long".into(),
+            );
+        }
+        Ok(())
+    }
+}

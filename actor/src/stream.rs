@@ -1,0 +1,415 @@
+//! `actor run`: steps vectorised environments with the learner's current
+//! policy and streams the steps to it.
+//!
+//! Actions are uniformly random while the learner's acknowledgements say so
+//! (SPEC §4's first 10,000 steps), then the newest snapshot's actions plus
+//! Gaussian noise. At most `max_unacked` batches are in flight: when the
+//! learner applies back-pressure the actor waits instead of queueing. When
+//! the learner goes away the actor reconnects with exponential backoff and
+//! jitter and resends the batches it has no acknowledgement for; the
+//! learner recognises a resent batch by its sequence number and stores it
+//! once.
+
+use crate::config::ActorFile;
+use anyhow::Context;
+use burn::tensor::Device;
+use serde::Serialize;
+use std::collections::VecDeque;
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::mpsc;
+use std::time::{Duration, Instant};
+use tokio::runtime::Runtime;
+use tonic::transport::{Channel, Endpoint};
+use tweezer_gym::{Action, Outcome, Policy, Renderer, SplitMix64, UniformRandom, VecEnv};
+use tweezer_nets::NetworkPolicy;
+use tweezer_proto::pb::learner_client::LearnerClient;
+use tweezer_proto::pb::snapshot_request::Selector;
+use tweezer_proto::{download_snapshot, pb, step_to_wire};
+
+/// What a run did, printed as JSON when it ends.
+#[derive(Clone, Debug, Default, Serialize)]
+pub struct RunReport {
+    /// Steps the learner acknowledged.
+    pub steps_acked: u64,
+    /// Batches sent, resends included.
+    pub batches_sent: u64,
+    /// Connections made after the first.
+    pub reconnects: u64,
+    /// Episodes finished.
+    pub episodes: u64,
+    /// Mean return of the finished episodes.
+    pub mean_return: f64,
+    /// Fraction of finished episodes that reached the target.
+    pub success_rate: f64,
+    /// Snapshot versions loaded, in order.
+    pub snapshots_loaded: Vec<u64>,
+}
+
+/// An open `StreamSteps` call.
+struct Link {
+    client: LearnerClient<Channel>,
+    batches: tokio::sync::mpsc::Sender<pb::StepBatch>,
+    acks: mpsc::Receiver<Result<pb::StepAck, tonic::Status>>,
+}
+
+/// Exponential backoff with ±50 % jitter.
+struct Backoff {
+    initial: Duration,
+    max: Duration,
+    next: Duration,
+    rng: SplitMix64,
+}
+
+impl Backoff {
+    fn wait(&mut self) -> Duration {
+        let jittered = self.next.mul_f64(0.5 + self.rng.unit());
+        self.next = (self.next * 2).min(self.max);
+        jittered
+    }
+
+    fn reset(&mut self) {
+        self.next = self.initial;
+    }
+}
+
+/// The actor's state across connections.
+struct Actor {
+    file: ActorFile,
+    runtime: Runtime,
+    envs: VecEnv,
+    actions: Vec<Action>,
+    uniform: UniformRandom,
+    noise: SplitMix64,
+    policy: Option<(u64, NetworkPolicy)>,
+    explore_uniformly: bool,
+    newest_snapshot: u64,
+    unacked: VecDeque<pb::StepBatch>,
+    next_sequence: u64,
+    steps_sent: u64,
+    returns: f64,
+    successes: u64,
+    report: RunReport,
+}
+
+/// Streams until `stop` is set or `steps` steps have been acknowledged;
+/// returns what was done.
+pub fn run(
+    file: ActorFile,
+    steps: Option<u64>,
+    stop: Arc<AtomicBool>,
+) -> anyhow::Result<RunReport> {
+    let config = file.actor.clone();
+    let runtime = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(1)
+        .enable_all()
+        .build()?;
+    let signalled = stop.clone();
+    runtime.spawn(async move {
+        let _ = tokio::signal::ctrl_c().await;
+        signalled.store(true, Ordering::Relaxed);
+    });
+    #[cfg(unix)]
+    {
+        let signalled = stop.clone();
+        runtime.spawn(async move {
+            use tokio::signal::unix::{SignalKind, signal};
+            if let Ok(mut term) = signal(SignalKind::terminate()) {
+                term.recv().await;
+                signalled.store(true, Ordering::Relaxed);
+            }
+        });
+    }
+    let mut actor = Actor {
+        envs: VecEnv::new(&file.env, config.envs, config.seed)?,
+        actions: vec![Action::ZERO; config.envs],
+        uniform: UniformRandom::new(config.seed),
+        noise: SplitMix64::derived(config.seed, 0x0015e),
+        policy: None,
+        explore_uniformly: true,
+        newest_snapshot: 0,
+        unacked: VecDeque::new(),
+        next_sequence: 0,
+        steps_sent: 0,
+        returns: 0.0,
+        successes: 0,
+        report: RunReport::default(),
+        runtime,
+        file,
+    };
+    let mut backoff = Backoff {
+        initial: Duration::from_millis(config.reconnect_initial_ms),
+        max: Duration::from_millis(config.reconnect_max_ms),
+        next: Duration::from_millis(config.reconnect_initial_ms),
+        rng: SplitMix64::derived(config.seed, 0xbac0ff),
+    };
+    let mut link: Option<Link> = None;
+    let mut connections = 0u64;
+    let mut last_log = Instant::now();
+    let done = |a: &Actor| steps.is_some_and(|n| a.report.steps_acked >= n);
+    while !done(&actor) {
+        let stopping = stop.load(Ordering::Relaxed);
+        if stopping && actor.unacked.is_empty() {
+            break;
+        }
+        let Some(open) = link.as_mut() else {
+            if stopping {
+                break;
+            }
+            match actor.connect() {
+                Ok(l) => {
+                    connections += 1;
+                    actor.report.reconnects = connections - 1;
+                    backoff.reset();
+                    link = Some(l);
+                }
+                Err(e) => {
+                    let wait = backoff.wait();
+                    tracing::warn!(error = %format!("{e:#}"), ?wait, "cannot reach the learner; retrying");
+                    std::thread::sleep(wait);
+                }
+            }
+            continue;
+        };
+        let sending = !stopping && steps.is_none_or(|n| actor.steps_sent < n);
+        let result = if sending && actor.unacked.len() < config.max_unacked {
+            actor.send_next(open)
+        } else {
+            actor.await_ack(open, Duration::from_millis(200))
+        };
+        match result {
+            Ok(()) => {}
+            Err(Broken::Link(e)) => {
+                tracing::warn!(error = %e, "lost the learner; reconnecting");
+                link = None;
+            }
+            Err(Broken::Fatal(e)) => return Err(e),
+        }
+        if last_log.elapsed() >= Duration::from_secs(10) {
+            last_log = Instant::now();
+            let r = actor.summary();
+            tracing::info!(
+                steps = r.steps_acked,
+                episodes = r.episodes,
+                mean_return = r.mean_return,
+                success_rate = r.success_rate,
+                snapshot = actor.policy.as_ref().map_or(0, |p| p.0),
+                "acting"
+            );
+        }
+    }
+    Ok(actor.summary())
+}
+
+/// Why a step of the loop failed.
+enum Broken {
+    /// The connection: reconnect.
+    Link(String),
+    /// Something reconnecting cannot mend.
+    Fatal(anyhow::Error),
+}
+
+impl Actor {
+    fn summary(&self) -> RunReport {
+        let mut report = self.report.clone();
+        let n = report.episodes.max(1) as f64;
+        report.mean_return = self.returns / n;
+        report.success_rate = self.successes as f64 / n;
+        report
+    }
+
+    /// Connects, opens a stream and resends what is unacknowledged.
+    fn connect(&mut self) -> anyhow::Result<Link> {
+        let url = self.file.actor.learner.clone();
+        let endpoint = Endpoint::from_shared(url.clone())
+            .with_context(|| format!("learner address `{url}`"))?
+            .connect_timeout(Duration::from_secs(5))
+            .tcp_nodelay(true);
+        let (batches, receiver) = tokio::sync::mpsc::channel(self.file.actor.max_unacked + 1);
+        let (ack_tx, acks) = mpsc::channel();
+        let client = self.runtime.block_on(async move {
+            let channel = endpoint
+                .connect()
+                .await
+                .with_context(|| format!("cannot connect to {url}"))?;
+            let mut client = LearnerClient::new(channel);
+            let mut stream = client
+                .stream_steps(tokio_stream::wrappers::ReceiverStream::new(receiver))
+                .await?
+                .into_inner();
+            tokio::spawn(async move {
+                loop {
+                    let next = match stream.message().await {
+                        Ok(Some(ack)) => Ok(ack),
+                        Ok(None) => Err(tonic::Status::unavailable("the learner ended the stream")),
+                        Err(status) => Err(status),
+                    };
+                    let end = next.is_err();
+                    if ack_tx.send(next).is_err() || end {
+                        break;
+                    }
+                }
+            });
+            anyhow::Ok(client)
+        })?;
+        for batch in &self.unacked {
+            batches
+                .blocking_send(batch.clone())
+                .context("the stream closed while resending")?;
+            self.report.batches_sent += 1;
+        }
+        Ok(Link {
+            client,
+            batches,
+            acks,
+        })
+    }
+
+    /// Steps the environments for one batch and sends it.
+    fn send_next(&mut self, link: &mut Link) -> Result<(), Broken> {
+        self.take_acks(link)?;
+        let batch_steps = self.file.actor.batch_steps;
+        let mut steps = Vec::with_capacity(batch_steps);
+        while steps.len() < batch_steps {
+            self.act();
+            self.envs
+                .step(&self.actions)
+                .map_err(|e| Broken::Fatal(e.into()))?;
+            for (i, slot) in self.envs.slots().iter().enumerate() {
+                if let Some(record) = slot.record(i as u32) {
+                    steps.push(step_to_wire(&record));
+                }
+                if let Some(episode) = slot.finished() {
+                    self.report.episodes += 1;
+                    self.returns += episode.episode_return;
+                    self.successes += u64::from(episode.outcome == Outcome::Success);
+                }
+            }
+        }
+        let batch = pb::StepBatch {
+            actor_id: self.file.actor.id.clone(),
+            sequence: self.next_sequence,
+            steps,
+        };
+        self.next_sequence += 1;
+        self.steps_sent += batch.steps.len() as u64;
+        self.unacked.push_back(batch.clone());
+        self.report.batches_sent += 1;
+        link.batches
+            .blocking_send(batch)
+            .map_err(|_| Broken::Link("the stream closed".into()))
+    }
+
+    /// Chooses every environment's action.
+    fn act(&mut self) {
+        match (&mut self.policy, self.explore_uniformly) {
+            (Some((_, policy)), false) => {
+                let observations = self.envs.observations();
+                policy.act(&observations, &mut self.actions);
+                let sigma = self.file.actor.noise;
+                for a in &mut self.actions {
+                    let [x, y] = a.components();
+                    let (nx, ny) = (self.noise.normal(), self.noise.normal());
+                    *a = Action::clipped(x + (sigma * nx) as f32, y + (sigma * ny) as f32)
+                        .unwrap_or(Action::ZERO);
+                }
+            }
+            _ => {
+                for a in &mut self.actions {
+                    *a = self.uniform.sample();
+                }
+            }
+        }
+    }
+
+    /// Handles acknowledgements already received.
+    fn take_acks(&mut self, link: &mut Link) -> Result<(), Broken> {
+        loop {
+            match link.acks.try_recv() {
+                Ok(ack) => self.acknowledged(link, ack)?,
+                Err(mpsc::TryRecvError::Empty) => return Ok(()),
+                Err(mpsc::TryRecvError::Disconnected) => {
+                    return Err(Broken::Link("the stream closed".into()));
+                }
+            }
+        }
+    }
+
+    /// Waits up to `timeout` for an acknowledgement.
+    fn await_ack(&mut self, link: &mut Link, timeout: Duration) -> Result<(), Broken> {
+        match link.acks.recv_timeout(timeout) {
+            Ok(ack) => self.acknowledged(link, ack)?,
+            Err(mpsc::RecvTimeoutError::Timeout) => {}
+            Err(mpsc::RecvTimeoutError::Disconnected) => {
+                return Err(Broken::Link("the stream closed".into()));
+            }
+        }
+        self.take_acks(link)
+    }
+
+    fn acknowledged(
+        &mut self,
+        link: &mut Link,
+        ack: Result<pb::StepAck, tonic::Status>,
+    ) -> Result<(), Broken> {
+        let ack = match ack {
+            Ok(ack) => ack,
+            Err(status) if status.code() == tonic::Code::InvalidArgument => {
+                return Err(Broken::Fatal(anyhow::anyhow!(
+                    "the learner refused a batch: {}",
+                    status.message()
+                )));
+            }
+            Err(status) => {
+                return Err(Broken::Link(format!(
+                    "{}: {}",
+                    status.code(),
+                    status.message()
+                )));
+            }
+        };
+        while self
+            .unacked
+            .front()
+            .is_some_and(|b| b.sequence <= ack.sequence)
+        {
+            let batch = self.unacked.pop_front().expect("front exists");
+            self.report.steps_acked += batch.steps.len() as u64;
+        }
+        self.explore_uniformly = ack.explore_uniformly;
+        self.newest_snapshot = self.newest_snapshot.max(ack.snapshot_version);
+        let loaded = self.policy.as_ref().map_or(0, |p| p.0);
+        if !self.explore_uniformly && self.newest_snapshot > loaded {
+            self.load_snapshot(link)?;
+        }
+        Ok(())
+    }
+
+    /// Fetches and loads the learner's newest snapshot.
+    fn load_snapshot(&mut self, link: &mut Link) -> Result<(), Broken> {
+        let client = &mut link.client;
+        let downloaded = self.runtime.block_on(download_snapshot(
+            client,
+            Selector::Tag(pb::SnapshotTag::Latest.into()),
+        ));
+        let (info, bytes) = match downloaded {
+            Ok(d) => d,
+            Err(tweezer_proto::DownloadError::Status(s)) if s.code() == tonic::Code::NotFound => {
+                return Ok(());
+            }
+            Err(e) => return Err(Broken::Link(e.to_string())),
+        };
+        let renderer = Renderer::for_config(&self.file.env).map_err(|e| Broken::Fatal(e.into()))?;
+        let (policy, _) =
+            NetworkPolicy::from_snapshot(&bytes, renderer, &Device::flex()).map_err(|e| {
+                Broken::Fatal(anyhow::anyhow!(
+                    "snapshot version {} from the learner cannot be used: {e}",
+                    info.version
+                ))
+            })?;
+        tracing::info!(version = info.version, "loaded the learner's snapshot");
+        self.report.snapshots_loaded.push(info.version);
+        self.policy = Some((info.version, policy));
+        Ok(())
+    }
+}
