@@ -21,7 +21,9 @@ use std::sync::mpsc;
 use std::time::{Duration, Instant};
 use tokio::runtime::Runtime;
 use tonic::transport::{Channel, Endpoint};
-use tweezer_gym::{Action, Outcome, Policy, Renderer, SplitMix64, UniformRandom, VecEnv};
+use tweezer_gym::{
+    Action, Outcome, Policy, Renderer, SplitMix64, UniformRandom, VecEnv, stop_signal,
+};
 use tweezer_nets::NetworkPolicy;
 use tweezer_proto::pb::learner_client::LearnerClient;
 use tweezer_proto::pb::snapshot_request::Selector;
@@ -106,20 +108,13 @@ pub fn run(
         .build()?;
     let signalled = stop.clone();
     runtime.spawn(async move {
-        let _ = tokio::signal::ctrl_c().await;
+        let signal = stop_signal().await;
+        tracing::info!(
+            signal,
+            "stopping once the batches in flight are acknowledged"
+        );
         signalled.store(true, Ordering::Relaxed);
     });
-    #[cfg(unix)]
-    {
-        let signalled = stop.clone();
-        runtime.spawn(async move {
-            use tokio::signal::unix::{SignalKind, signal};
-            if let Ok(mut term) = signal(SignalKind::terminate()) {
-                term.recv().await;
-                signalled.store(true, Ordering::Relaxed);
-            }
-        });
-    }
     let mut actor = Actor {
         envs: VecEnv::new(&file.env, config.envs, config.seed)?,
         actions: vec![Action::ZERO; config.envs],

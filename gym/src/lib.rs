@@ -9,11 +9,11 @@ mod action;
 mod config;
 mod env;
 mod eval;
-#[cfg(feature = "cli")]
-mod logging;
 mod num;
 mod observation;
 mod policy;
+#[cfg(feature = "cli")]
+mod process;
 mod render;
 mod rng;
 mod seeds;
@@ -31,10 +31,10 @@ pub use config::{
 };
 pub use env::{Env, EpisodeError, EpisodeOver, Layout, Outcome, RewardParts, StepResult, Target};
 pub use eval::{EvalSummary, evaluate};
-#[cfg(feature = "cli")]
-pub use logging::init_logging;
 pub use observation::{Observation, ObservationBounds, ObservationError};
 pub use policy::{Greedy, Policy, UniformRandom};
+#[cfg(feature = "cli")]
+pub use process::{init_logging, stop_signal};
 pub use render::{Frame, Pixel, Renderer, SizeMismatch};
 pub use rng::SplitMix64;
 pub use seeds::{Seeds, SeedsError};

@@ -20,7 +20,7 @@ use std::path::Path;
 use std::sync::Arc;
 use tokio::net::TcpListener;
 use tokio_stream::wrappers::TcpListenerStream;
-use tweezer_gym::ObservationBounds;
+use tweezer_gym::{ObservationBounds, stop_signal};
 use tweezer_proto::pb::learner_server::LearnerServer;
 
 /// The run directory's parts.
@@ -184,27 +184,4 @@ fn shared_state(
         ),
         None => shared,
     })
-}
-
-/// Waits for SIGINT or SIGTERM; names the one that came.
-async fn stop_signal() -> &'static str {
-    #[cfg(unix)]
-    {
-        use tokio::signal::unix::{SignalKind, signal};
-        match signal(SignalKind::terminate()) {
-            Ok(mut term) => tokio::select! {
-                _ = tokio::signal::ctrl_c() => "SIGINT",
-                _ = term.recv() => "SIGTERM",
-            },
-            Err(_) => {
-                let _ = tokio::signal::ctrl_c().await;
-                "SIGINT"
-            }
-        }
-    }
-    #[cfg(not(unix))]
-    {
-        let _ = tokio::signal::ctrl_c().await;
-        "Ctrl-C"
-    }
 }
