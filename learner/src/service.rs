@@ -152,11 +152,10 @@ impl Learner for LearnerService {
             let replay = s.replay();
             (replay.len(), replay.capacity())
         };
-        let limiter_state = match s.limiter() {
-            Some(l) => l.snapshot().1.as_str().to_string(),
-            None => "learning paused".into(),
+        let (rolling, episodes) = {
+            let episodes = s.episodes();
+            (episodes.rolling(), episodes.finished())
         };
-        let rolling = s.episodes().rolling();
         let training = *s.training();
         let (latest_snapshot, best_snapshot) = s
             .snapshots()
@@ -168,7 +167,7 @@ impl Learner for LearnerService {
             buffer_capacity: capacity as u64,
             insert_rate: training.insert_rate,
             sample_rate: training.sample_rate,
-            limiter_state,
+            limiter_state: s.limiter_state().into(),
             connected_actors: s.connected(),
             rolling_return: rolling.mean_return,
             success_rate: rolling.success_rate,
@@ -177,7 +176,7 @@ impl Learner for LearnerService {
             critic_loss: training.critic_loss,
             actor_loss: training.actor_loss,
             mean_q: training.mean_q,
-            episodes: s.episodes().finished(),
+            episodes,
             malformed_batches: s.malformed(),
             duplicate_batches: s.duplicates(),
             explore_uniformly: s.explore_uniformly(),

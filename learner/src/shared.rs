@@ -152,6 +152,13 @@ impl Shared {
         self.limiter.as_ref()
     }
 
+    /// What the rate limiter is doing, as status shows it.
+    pub fn limiter_state(&self) -> &'static str {
+        self.limiter
+            .as_ref()
+            .map_or("learning paused", |l| l.snapshot().1.as_str())
+    }
+
     /// The snapshots, when this learner publishes any.
     pub fn snapshots(&self) -> Option<MutexGuard<'_, Snapshots>> {
         self.snapshots.as_ref().map(lock)
@@ -277,8 +284,9 @@ impl Shared {
             Some(_) => {}
             None => *stream_actor = Some(actor.clone()),
         }
-        if let Some(i) = steps.iter().position(|s| Replay::admits(s).is_err()) {
-            let reason = Replay::admits(&steps[i]).expect_err("just failed");
+        if let Some((i, reason)) =
+            (steps.iter().enumerate()).find_map(|(i, s)| Replay::admits(s).err().map(|e| (i, e)))
+        {
             return Err(refuse(Status::invalid_argument(format!(
                 "steps[{i}]: {reason}"
             ))));

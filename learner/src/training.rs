@@ -222,10 +222,7 @@ impl Trainer {
             update_ms: s.update_ms / n,
             insert_rate,
             sample_rate,
-            limiter: self
-                .shared
-                .limiter()
-                .map_or("learning paused", |l| l.snapshot().1.as_str()),
+            limiter: self.shared.limiter_state(),
         };
         {
             let mut training = self.shared.training();
