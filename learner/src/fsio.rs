@@ -3,7 +3,7 @@
 
 use std::fs::{self, File};
 use std::io::{self, Write};
-use std::path::Path;
+use std::path::{Path, PathBuf};
 
 /// Writes `path` atomically: a temporary file in the same directory is
 /// written and fsynced, renamed over `path`, and the directory fsynced so
@@ -12,23 +12,41 @@ pub fn write_atomic(
     path: &Path,
     write: impl FnOnce(&mut dyn Write) -> io::Result<()>,
 ) -> io::Result<()> {
-    let dir = path.parent().unwrap_or(Path::new("."));
-    let name = path
-        .file_name()
-        .ok_or_else(|| io::Error::new(io::ErrorKind::InvalidInput, "path has no file name"))?;
-    let tmp = dir.join(format!(".{}.tmp", name.to_string_lossy()));
+    let (dir, tmp) = beside(path, "tmp")?;
     let result = (|| {
         let mut file = io::BufWriter::with_capacity(1 << 20, File::create(&tmp)?);
         write(&mut file)?;
         let file = file.into_inner().map_err(io::IntoInnerError::into_error)?;
         file.sync_all()?;
         fs::rename(&tmp, path)?;
-        sync_dir(dir)
+        sync_dir(&dir)
     })();
     if result.is_err() {
         let _ = fs::remove_file(&tmp);
     }
     result
+}
+
+/// Makes `to` another name for the file `from`, atomically replacing what
+/// `to` named before (a hard link, renamed into place).
+pub fn link_atomic(from: &Path, to: &Path) -> io::Result<()> {
+    let (dir, tmp) = beside(to, "link")?;
+    let _ = fs::remove_file(&tmp);
+    fs::hard_link(from, &tmp)?;
+    fs::rename(&tmp, to).inspect_err(|_| {
+        let _ = fs::remove_file(&tmp);
+    })?;
+    sync_dir(&dir)
+}
+
+/// The directory of `path` and a hidden temporary name beside it.
+fn beside(path: &Path, suffix: &str) -> io::Result<(PathBuf, PathBuf)> {
+    let dir = path.parent().unwrap_or(Path::new(".")).to_path_buf();
+    let name = path
+        .file_name()
+        .ok_or_else(|| io::Error::new(io::ErrorKind::InvalidInput, "path has no file name"))?;
+    let tmp = dir.join(format!(".{}.{suffix}", name.to_string_lossy()));
+    Ok((dir, tmp))
 }
 
 /// Fsyncs a directory, making renames and deletions in it durable.

@@ -4,7 +4,7 @@
 //! rolling return (the model the paper took to the microscope); it is kept on
 //! disk, also as `best.safetensors`, whatever the pruning of older versions.
 
-use crate::fsio::write_atomic;
+use crate::fsio::{link_atomic, write_atomic};
 use serde::{Deserialize, Serialize};
 use std::collections::VecDeque;
 use std::io::{self, Write};
@@ -178,13 +178,14 @@ impl Snapshots {
         self.write(&self.path(version), &published.bytes)?;
         self.kept.push_back(version);
         self.latest = Some(published.clone());
-        let is_best = match (rolling_return, &self.best) {
-            (Some(r), Some((_, best))) => r >= *best,
-            (Some(_), None) => true,
-            (None, _) => false,
-        };
-        if let (true, Some(r)) = (is_best, rolling_return) {
-            self.write(&self.dir.join("best.safetensors"), &published.bytes)?;
+        let is_best =
+            rolling_return.is_some_and(|r| self.best.as_ref().is_none_or(|(_, best)| r >= *best));
+        if let Some(r) = rolling_return.filter(|_| is_best) {
+            // A second name for the file just written, not a second copy.
+            let best = self.dir.join("best.safetensors");
+            if link_atomic(&self.path(version), &best).is_err() {
+                self.write(&best, &published.bytes)?;
+            }
             self.best = Some((published.clone(), r));
         }
         self.prune();

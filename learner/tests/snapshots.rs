@@ -58,6 +58,11 @@ fn the_best_is_kept_while_older_versions_are_pruned() {
         ]
     );
 
+    assert_eq!(
+        std::fs::read(dir.path().join("best.safetensors")).unwrap(),
+        std::fs::read(store.path(3)).unwrap()
+    );
+
     let state = store.state();
     let restored = Snapshots::restore(dir.path(), 2, &state).unwrap();
     assert_eq!(restored.latest_version(), 6);
