@@ -93,6 +93,16 @@ impl Learner {
         }
     }
 
+    /// A new run in `run` with the config file `config`.
+    fn fresh(config: &Path, run: &Path) -> Self {
+        Self::start(&[
+            "--config",
+            config.to_str().unwrap(),
+            "--run-dir",
+            run.to_str().unwrap(),
+        ])
+    }
+
     async fn client(&self) -> LearnerClient<Channel> {
         LearnerClient::connect(format!("http://{}", self.addr))
             .await
@@ -239,12 +249,7 @@ fn checkpoints(run: &Path) -> Vec<PathBuf> {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn learns_to_point_at_the_target_over_grpc() {
     let (_dir, run, config) = run_dir();
-    let learner = Learner::start(&[
-        "--config",
-        config.to_str().unwrap(),
-        "--run-dir",
-        run.to_str().unwrap(),
-    ]);
+    let learner = Learner::fresh(&config, &run);
     let mut client = learner.client().await;
 
     let untrained = download_snapshot(&mut client, Selector::Tag(pb::SnapshotTag::Latest.into()))
@@ -316,12 +321,7 @@ async fn learns_to_point_at_the_target_over_grpc() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn resumes_from_the_newest_whole_checkpoint() {
     let (_dir, run, config) = run_dir();
-    let learner = Learner::start(&[
-        "--config",
-        config.to_str().unwrap(),
-        "--run-dir",
-        run.to_str().unwrap(),
-    ]);
+    let learner = Learner::fresh(&config, &run);
     let first = feed(&learner, "actor-0", 600).await;
     let (exit, log) = learner.stop();
     assert!(exit.success(), "{log}");
