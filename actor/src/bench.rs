@@ -1,11 +1,38 @@
-//! `actor bench`: how fast the environment steps and renders.
+//! `actor bench`: how fast the environment steps and renders, and how fast
+//! an actor acts: environments plus batched network inference.
 
+use burn::tensor::Device;
 use rayon::prelude::*;
 use serde::Serialize;
 use std::time::{Duration, Instant};
 use tweezer_gym::{
-    Action, ConfigError, Env, EnvConfig, Frame, Outcome, Renderer, UniformRandom, VecEnv,
+    Action, ConfigError, Env, EnvConfig, Frame, ImageConfig, Outcome, Policy, Renderer,
+    UniformRandom, VecEnv,
 };
+use tweezer_nets::{ActorConfig, EncoderConfig, NetworkPolicy};
+
+/// The networks an actor runs: the paper's resolution and the quick
+/// preset's.
+const NETWORKS: [(&str, [u32; 2]); 2] = [("paper", [320, 256]), ("quick", [40, 32])];
+/// Environments per actor measured.
+const ACTING_ENVS: [usize; 3] = [1, 8, 32];
+
+/// One actor configuration's speed: environments stepped with the actions
+/// of an untrained network, inferred in one batch per step.
+#[derive(Debug, Serialize)]
+pub struct ActingFigure {
+    /// `paper` or `quick`.
+    pub network: &'static str,
+    /// Image resolution (width, height).
+    pub resolution: [u32; 2],
+    /// Environments stepped together.
+    pub envs: usize,
+    /// Environment steps per second, inference included.
+    pub actor_steps_per_sec: f64,
+    /// Share of the time spent in inference (rendering the batch's images
+    /// included); the rest steps the environments.
+    pub inference_share: f64,
+}
 
 /// Benchmark figures; rates are medians over repetitions.
 #[derive(Debug, Serialize)]
@@ -27,6 +54,9 @@ pub struct BenchReport {
     pub resolution: [u32; 2],
     /// Repetitions each rate is the median of.
     pub repetitions: usize,
+    /// Acting speed per network and number of environments (one
+    /// repetition each).
+    pub acting: Vec<ActingFigure>,
 }
 
 fn median(mut values: Vec<f64>) -> f64 {
@@ -138,6 +168,42 @@ fn render_times(config: &EnvConfig, renderer: &Renderer) -> Result<(f64, f64), C
     Ok((median(full), median(incremental)))
 }
 
+/// Steps per second of `envs` environments driven by an untrained `network`
+/// over about `span`, and the share of the time inference took.
+fn acting(
+    config: &EnvConfig,
+    network: (&'static str, [u32; 2]),
+    envs: usize,
+    span: Duration,
+) -> Result<ActingFigure, ConfigError> {
+    let (name, [width, height]) = network;
+    let mut config = config.clone();
+    config.image = ImageConfig { width, height };
+    let device = Device::flex();
+    let actor = ActorConfig::new(EncoderConfig::new(height as usize, width as usize)).init(&device);
+    let mut policy = NetworkPolicy::new(actor, Renderer::for_config(&config)?, device);
+    let mut vec_env = VecEnv::new(&config, envs, 7)?;
+    let mut actions = vec![Action::ZERO; envs];
+    let mut inference = Duration::ZERO;
+    let mut steps = 0u64;
+    let start = Instant::now();
+    while start.elapsed() < span || steps == 0 {
+        let t = Instant::now();
+        policy.act(&vec_env.observations(), &mut actions);
+        inference += t.elapsed();
+        vec_env.step(&actions).expect("one action per environment");
+        steps += envs as u64;
+    }
+    let elapsed = start.elapsed().as_secs_f64();
+    Ok(ActingFigure {
+        network: name,
+        resolution: [width, height],
+        envs,
+        actor_steps_per_sec: steps as f64 / elapsed,
+        inference_share: inference.as_secs_f64() / elapsed,
+    })
+}
+
 /// Runs every benchmark, each rate `repetitions` times for about `span`.
 pub fn run(
     config: &EnvConfig,
@@ -155,6 +221,11 @@ pub fn run(
         .map(|r| all_cores(config, &renderer, vec_envs, span, r as u64))
         .collect::<Result<_, _>>()?;
     let (render_us_median, render_incremental_us_median) = render_times(config, &renderer)?;
+    let acting = NETWORKS
+        .iter()
+        .flat_map(|&network| ACTING_ENVS.map(|envs| (network, envs)))
+        .map(|(network, envs)| acting(config, network, envs, span))
+        .collect::<Result<_, _>>()?;
     Ok(BenchReport {
         env_steps_per_sec_1core: median(single),
         env_steps_per_sec_all_cores: median(parallel),
@@ -164,6 +235,7 @@ pub fn run(
         vec_envs,
         resolution: [config.image.width, config.image.height],
         repetitions,
+        acting,
     })
 }
 
@@ -184,5 +256,10 @@ mod tests {
         assert!(report.env_steps_per_sec_all_cores > 0.0);
         assert!(report.render_us_median > 0.0);
         assert_eq!(report.resolution, [320, 256]);
+        assert_eq!(report.acting.len(), 6);
+        for figure in &report.acting {
+            assert!(figure.actor_steps_per_sec > 0.0, "{figure:?}");
+            assert!((0.0..=1.0).contains(&figure.inference_share), "{figure:?}");
+        }
     }
 }

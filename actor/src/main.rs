@@ -3,10 +3,9 @@
 
 mod bench;
 mod config;
-mod demo;
 mod stream;
 
-use anyhow::{Context, bail};
+use anyhow::bail;
 use burn::tensor::Device;
 use clap::{Parser, Subcommand};
 use config::ActorFile;
@@ -15,7 +14,7 @@ use std::sync::Arc;
 use std::sync::atomic::AtomicBool;
 use std::time::Duration;
 use tweezer_gym::{
-    EnvConfig, EvalSummary, Greedy, Policy, Renderer, Seeds, UniformRandom, evaluate, init_logging,
+    EnvConfig, EvalSummary, Greedy, Policy, Seeds, UniformRandom, evaluate, init_logging,
 };
 use tweezer_nets::NetworkPolicy;
 
@@ -41,6 +40,9 @@ enum Command {
         /// This actor's id instead of `actor.id`.
         #[arg(long)]
         id: Option<String>,
+        /// Seed of the episodes and the noise instead of `actor.seed`.
+        #[arg(long)]
+        seed: Option<u64>,
         /// Stop once the learner has acknowledged this many steps.
         #[arg(long)]
         steps: Option<u64>,
@@ -95,11 +97,7 @@ fn policy_named(name: &str, env: &EnvConfig) -> anyhow::Result<Box<dyn Policy>> 
         "greedy" => Ok(Box::new(Greedy)),
         "random" => Ok(Box::new(UniformRandom::new(0))),
         path if Path::new(path).is_file() => {
-            let bytes =
-                std::fs::read(path).with_context(|| format!("cannot read snapshot {path}"))?;
-            let renderer = Renderer::for_config(env)?;
-            let (policy, _) = NetworkPolicy::from_snapshot(&bytes, renderer, &Device::flex())
-                .with_context(|| format!("cannot use snapshot {path}"))?;
+            let (policy, _) = NetworkPolicy::from_file(Path::new(path), env, &Device::flex())?;
             Ok(Box::new(policy))
         }
         other => bail!(
@@ -129,6 +127,7 @@ fn main() -> anyhow::Result<()> {
         Command::Run {
             learner,
             id,
+            seed,
             steps,
             log_json,
         } => {
@@ -138,6 +137,9 @@ fn main() -> anyhow::Result<()> {
             }
             if let Some(id) = id {
                 config.actor.id = id;
+            }
+            if let Some(seed) = seed {
+                config.actor.seed = seed;
             }
             config.actor.validate().map_err(|e| e.in_table("actor"))?;
             if steps == Some(0) {
@@ -185,15 +187,27 @@ fn main() -> anyhow::Result<()> {
                     "resolution {}x{}, median of {} repetitions",
                     report.resolution[0], report.resolution[1], report.repetitions
                 );
+                for a in &report.acting {
+                    println!(
+                        "acting, {} net {}x{}, {:>2} envs  {:.0} steps/s ({:.0} % inference)",
+                        a.network,
+                        a.resolution[0],
+                        a.resolution[1],
+                        a.envs,
+                        a.actor_steps_per_sec,
+                        100.0 * a.inference_share
+                    );
+                }
             }
         }
         Command::Config => print!("{}", config.to_toml()),
         Command::Demo { seeds, out } => {
-            let (written, summary) = demo::run(&config.env, &seeds.0, &out)?;
-            for path in &written {
+            let pictures =
+                tweezer_figures::draw_episodes(&config.env, &mut Greedy, &seeds.0, &out)?;
+            for path in &pictures.written {
                 println!("wrote {}", path.display());
             }
-            print_summary(&summary, false)?;
+            print_summary(&pictures.summary, false)?;
         }
     }
     Ok(())

@@ -8,7 +8,8 @@
 //! the learner goes away the actor reconnects with exponential backoff and
 //! jitter and resends the batches it has no acknowledgement for; the
 //! learner recognises a resent batch by its sequence number and stores it
-//! once.
+//! once; a restarted actor numbers its batches on from the clock, above its
+//! predecessor's.
 
 use crate::config::ActorFile;
 use anyhow::Context;
@@ -46,6 +47,9 @@ pub struct RunReport {
     pub success_rate: f64,
     /// Snapshot versions loaded, in order.
     pub snapshots_loaded: Vec<u64>,
+    /// Batches sent but not acknowledged when the actor stopped (not
+    /// counted in `steps_acked`).
+    pub batches_unacknowledged: u64,
 }
 
 /// An open `StreamSteps` call.
@@ -94,6 +98,21 @@ struct Actor {
     report: RunReport,
 }
 
+/// How long a stopping actor waits for its batches in flight to be
+/// acknowledged: a learner applying back-pressure may hold them for long.
+const STOP_DRAIN: Duration = Duration::from_secs(3);
+
+/// This process's first batch sequence number: microseconds since the Unix
+/// epoch. The learner stores a batch of an actor id only above the last
+/// sequence it stored for that id, so an actor restarted under the same id
+/// must count on from beyond its predecessor (which sent far fewer than a
+/// million batches a second).
+fn first_sequence() -> u64 {
+    std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map_or(0, |d| d.as_micros() as u64)
+}
+
 /// Streams until `stop` is set or `steps` steps have been acknowledged;
 /// returns what was done.
 pub fn run(
@@ -111,7 +130,7 @@ pub fn run(
         let signal = stop_signal().await;
         tracing::info!(
             signal,
-            "stopping once the batches in flight are acknowledged"
+            "stopping once the batches in flight are acknowledged (at most 3 s)"
         );
         signalled.store(true, Ordering::Relaxed);
     });
@@ -124,7 +143,7 @@ pub fn run(
         explore_uniformly: true,
         newest_snapshot: 0,
         unacked: VecDeque::new(),
-        next_sequence: 0,
+        next_sequence: first_sequence(),
         steps_sent: 0,
         returns: 0.0,
         successes: 0,
@@ -142,10 +161,21 @@ pub fn run(
     let mut connections = 0u64;
     let mut last_log = Instant::now();
     let done = |a: &Actor| steps.is_some_and(|n| a.report.steps_acked >= n);
+    let mut stopping_since: Option<Instant> = None;
     while !done(&actor) {
         let stopping = stop.load(Ordering::Relaxed);
-        if stopping && actor.unacked.is_empty() {
-            break;
+        if stopping {
+            let since = *stopping_since.get_or_insert_with(Instant::now);
+            if actor.unacked.is_empty() {
+                break;
+            }
+            if since.elapsed() >= STOP_DRAIN {
+                tracing::warn!(
+                    batches = actor.unacked.len(),
+                    "stopping with batches unacknowledged (the learner holds them back)"
+                );
+                break;
+            }
         }
         let Some(open) = link.as_mut() else {
             if stopping {
@@ -210,6 +240,7 @@ impl Actor {
         let n = report.episodes.max(1) as f64;
         report.mean_return = self.returns / n;
         report.success_rate = self.successes as f64 / n;
+        report.batches_unacknowledged = self.unacked.len() as u64;
         report
     }
 

@@ -9,6 +9,7 @@ mod action;
 mod config;
 mod env;
 mod eval;
+mod ideal;
 mod num;
 mod observation;
 mod policy;

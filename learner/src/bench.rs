@@ -16,7 +16,7 @@ use tweezer_proto::pb::learner_client::LearnerClient;
 /// Benchmark figures. Times are means over the timed repetitions.
 #[derive(Debug, Serialize)]
 pub struct LearnerBench {
-    /// One full TD3 update at batch 32: sampling, rendering, the critic
+    /// One full TD3 update at `batch_size`: sampling, rendering, the critic
     /// step, and the actor step with soft updates every second update;
     /// averaged over an even number of consecutive updates.
     pub update_ms_mean: f64,
@@ -35,6 +35,8 @@ pub struct LearnerBench {
     pub replay_capacity: usize,
     /// Image resolution (width, height).
     pub resolution: [u32; 2],
+    /// Transitions per update (`learner.batch_size`).
+    pub batch_size: usize,
     /// Updates timed.
     pub updates_timed: usize,
     /// Transitions per second taken in over real gRPC on loopback from 8
@@ -122,6 +124,7 @@ fn time_ms(reps: usize, mut f: impl FnMut()) -> f64 {
 /// after two warm-up updates, on a replay of `capacity` transitions.
 pub fn run(
     env: &EnvConfig,
+    batch_size: usize,
     capacity: usize,
     updates: usize,
     device: &Device,
@@ -135,7 +138,9 @@ pub fn run(
     let mut td3 = Td3::new(Td3Config::default(), h, w, &training)?;
     let mut rng = SplitMix64::new(7);
     let mut step = || {
-        let sampled = replay.sample(32, &mut rng).expect("the replay is full");
+        let sampled = replay
+            .sample(batch_size, &mut rng)
+            .expect("the replay is full");
         td3.update(to_tensors(&sampled, &renderer, &training))
     };
     step();
@@ -169,6 +174,7 @@ pub fn run(
         replay_bytes_per_transition,
         replay_capacity: capacity,
         resolution: [env.image.width, env.image.height],
+        batch_size,
         updates_timed: updates,
         ingest_transitions_per_sec: ingest_rate(env)?,
     })

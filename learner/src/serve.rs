@@ -23,10 +23,12 @@ use tokio_stream::wrappers::TcpListenerStream;
 use tweezer_gym::{ObservationBounds, stop_signal};
 use tweezer_proto::pb::learner_server::LearnerServer;
 
-/// The run directory's parts.
+/// The run directory's checkpoints.
 const CHECKPOINTS: &str = "checkpoints";
-const SNAPSHOTS: &str = "snapshots";
-const METRICS: &str = "metrics.jsonl";
+/// The run directory's snapshots.
+pub const SNAPSHOTS: &str = "snapshots";
+/// The run directory's metrics file.
+pub const METRICS: &str = "metrics.jsonl";
 /// How long clients may take to hang up once the learner stops.
 const SHUTDOWN_GRACE: std::time::Duration = std::time::Duration::from_secs(3);
 /// The effective config, written when a run starts.

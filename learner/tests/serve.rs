@@ -8,7 +8,10 @@ use std::process::{Child, Command, Stdio};
 use std::sync::mpsc;
 use std::time::{Duration, Instant};
 use tonic::transport::Channel;
-use tweezer_gym::{Action, EnvConfig, Greedy, Observation, Policy, Renderer, SplitMix64, VecEnv};
+use tweezer_gym::{
+    Action, EnvConfig, EvalSummary, Greedy, Observation, Policy, Renderer, SplitMix64,
+    UniformRandom, VecEnv, evaluate,
+};
 use tweezer_nets::NetworkPolicy;
 use tweezer_proto::pb::learner_client::LearnerClient;
 use tweezer_proto::pb::snapshot_request::Selector;
@@ -210,9 +213,7 @@ async fn status(learner: &Learner) -> pb::LearnerStatus {
 /// Cosine between the actor's action and the target vector, for target
 /// vectors in eight directions with nothing else in view.
 fn alignment(snapshot: &[u8]) -> Vec<f32> {
-    let renderer = Renderer::for_config(&tiny_env()).unwrap();
-    let device = burn::tensor::Device::flex();
-    let (mut policy, _) = NetworkPolicy::from_snapshot(snapshot, renderer, &device).unwrap();
+    let mut policy = network(snapshot);
     let observations: Vec<Observation> = (0..8)
         .map(|k| {
             let angle = k as f32 * std::f32::consts::FRAC_PI_4 + 0.3;
@@ -234,6 +235,21 @@ fn alignment(snapshot: &[u8]) -> Vec<f32> {
             (x * vx + y * vy) / ((x * x + y * y).sqrt() * (vx * vx + vy * vy).sqrt() + 1e-9)
         })
         .collect()
+}
+
+/// Mean return of a policy over 32 held-out episodes of the tiny
+/// environment.
+fn mean_return(policy: &mut dyn Policy) -> f64 {
+    let seeds: Vec<u64> = (100_000..100_032).collect();
+    let episodes = evaluate(&tiny_env(), policy, &seeds, 32).unwrap();
+    EvalSummary::of(&episodes).mean_return
+}
+
+fn network(snapshot: &[u8]) -> NetworkPolicy {
+    let renderer = Renderer::for_config(&tiny_env()).unwrap();
+    NetworkPolicy::from_snapshot(snapshot, renderer, &burn::tensor::Device::flex())
+        .unwrap()
+        .0
 }
 
 fn checkpoints(run: &Path) -> Vec<PathBuf> {
@@ -291,6 +307,16 @@ async fn learns_to_point_at_the_target_over_grpc() {
     assert!(
         before.iter().sum::<f32>() / 8.0 < 0.5,
         "untrained cosines {before:?}"
+    );
+    // In episodes: the trained policy carries the sphere most of the
+    // 1,000 px (return up to ~880), random actions and the untrained network
+    // do not (~ -200: the time penalty, little carry).
+    let trained = mean_return(&mut network(&latest));
+    let random = mean_return(&mut UniformRandom::new(5));
+    let untrained = mean_return(&mut network(&untrained.1));
+    assert!(
+        trained > 500.0 && trained > random + 500.0 && trained > untrained + 500.0,
+        "mean returns: trained {trained:.0}, random {random:.0}, untrained {untrained:.0}"
     );
 
     let best = download_snapshot(&mut client, Selector::Tag(pb::SnapshotTag::Best.into()))

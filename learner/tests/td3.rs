@@ -115,7 +115,7 @@ fn the_bench_measures_a_small_configuration() {
         },
         ..tweezer_gym::EnvConfig::default()
     };
-    let report = tweezer_learner::bench::run(&env, 2_000, 2, &Device::flex()).unwrap();
+    let report = tweezer_learner::bench::run(&env, 32, 2_000, 2, &Device::flex()).unwrap();
     assert_eq!(report.updates_timed, 2);
     for v in [
         report.update_ms_mean,

@@ -20,7 +20,7 @@ pub use critic::{Critic, CriticConfig};
 pub use encoder::{Encoder, EncoderConfig};
 pub use head::{Head, HeadConfig};
 pub use images::render_images;
-pub use policy::NetworkPolicy;
+pub use policy::{NetworkPolicy, PolicyFileError};
 pub use snapshot::{
     ARCHITECTURE, SnapshotError, SnapshotInfo, decode, encode, file_sha256, read_info,
 };

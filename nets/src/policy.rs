@@ -5,7 +5,32 @@ use crate::actor::Actor;
 use crate::images::render_images;
 use crate::snapshot::{SnapshotError, SnapshotInfo, decode};
 use burn::tensor::{Device, Tensor, TensorData};
-use tweezer_gym::{Action, Observation, Policy, Renderer};
+use std::path::Path;
+use tweezer_gym::{Action, ConfigError, EnvConfig, Observation, Policy, Renderer};
+
+/// A snapshot file that cannot become a policy.
+#[derive(Debug, thiserror::Error)]
+pub enum PolicyFileError {
+    /// The file cannot be read.
+    #[error("cannot read snapshot {path}: {source}")]
+    Read {
+        /// The file.
+        path: String,
+        /// The operating system's reason.
+        source: std::io::Error,
+    },
+    /// The file is not a usable snapshot.
+    #[error("cannot use snapshot {path}: {source}")]
+    Snapshot {
+        /// The file.
+        path: String,
+        /// What is wrong with it.
+        source: SnapshotError,
+    },
+    /// The environment config has no renderer.
+    #[error(transparent)]
+    Config(#[from] ConfigError),
+}
 
 /// The actor network choosing actions for batches of observations, on a
 /// device without autodiff (BatchNorm uses its running statistics).
@@ -34,6 +59,24 @@ impl NetworkPolicy {
     ) -> Result<(Self, SnapshotInfo), SnapshotError> {
         let (actor, info) = decode(bytes, renderer.height(), renderer.width(), device)?;
         Ok((Self::new(actor, renderer, device.clone()), info))
+    }
+
+    /// Loads the snapshot file at `path` for the images of `env`.
+    pub fn from_file(
+        path: &Path,
+        env: &EnvConfig,
+        device: &Device,
+    ) -> Result<(Self, SnapshotInfo), PolicyFileError> {
+        let name = || path.display().to_string();
+        let bytes = std::fs::read(path).map_err(|source| PolicyFileError::Read {
+            path: name(),
+            source,
+        })?;
+        let renderer = Renderer::for_config(env)?;
+        Self::from_snapshot(&bytes, renderer, device).map_err(|source| PolicyFileError::Snapshot {
+            path: name(),
+            source,
+        })
     }
 }
 

@@ -3,9 +3,25 @@
 
 use serde_json::Value;
 use std::collections::HashMap;
+use std::io::{BufRead, BufReader};
 use std::path::{Path, PathBuf};
-use std::process::{Command, Output};
+use std::process::{Child, Command, ExitStatus, Output, Stdio};
 use std::sync::OnceLock;
+use std::time::{Duration, Instant};
+use tweezer_proto::pb;
+use tweezer_proto::pb::learner_client::LearnerClient;
+
+/// An `[env]` table without free spheres and with 20 x 16 images: cheap to
+/// step and to learn from.
+pub const TINY_ENV: &str = r#"
+[env]
+min_free_spheres = 0
+max_free_spheres = 0
+time_limit = 200
+[env.image]
+width = 20
+height = 16
+"#;
 
 /// Every binary of the workspace by name, built once per test process by
 /// `cargo build --workspace --all-targets`: the same targets, and so the
@@ -80,4 +96,76 @@ pub fn stdout_of(output: &Output) -> String {
 pub fn stderr_of_failure(output: &Output) -> String {
     assert!(!output.status.success(), "expected failure, got success");
     String::from_utf8_lossy(&output.stderr).into_owned()
+}
+
+/// Starts `learner serve` with `args`; returns it, once it listens, and the
+/// address it listens on.
+pub fn start_learner(args: &[&str]) -> (Child, String) {
+    let mut child = Command::new(binary("learner"))
+        .arg("serve")
+        .args(args)
+        .stdout(Stdio::piped())
+        .stderr(Stdio::null())
+        .spawn()
+        .unwrap_or_else(|e| panic!("cannot start the learner: {e}"));
+    let mut line = String::new();
+    BufReader::new(child.stdout.take().expect("stdout is piped"))
+        .read_line(&mut line)
+        .expect("the learner writes its address");
+    let addr = line
+        .trim()
+        .strip_prefix("learner listening on ")
+        .unwrap_or_else(|| panic!("unexpected first line {line:?}"))
+        .to_string();
+    (child, addr)
+}
+
+/// Sends signal `name` (`TERM`, `INT`, ...) to `child`.
+pub fn signal(child: &Child, name: &str) {
+    let sent = Command::new("kill")
+        .args([&format!("-{name}"), &child.id().to_string()])
+        .status()
+        .expect("kill runs");
+    assert!(sent.success(), "kill -{name} failed");
+}
+
+/// SIGTERM, then (within two minutes) the exit status and what is left of
+/// standard output.
+pub fn stop(mut child: Child) -> (ExitStatus, String) {
+    signal(&child, "TERM");
+    let deadline = Instant::now() + Duration::from_secs(120);
+    while child.try_wait().expect("wait works").is_none() {
+        assert!(Instant::now() < deadline, "the process did not stop");
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    let output = child.wait_with_output().expect("output is readable");
+    (
+        output.status,
+        String::from_utf8(output.stdout).expect("utf-8 output"),
+    )
+}
+
+/// The learner's status, or None while it cannot be reached.
+pub fn status(runtime: &tokio::runtime::Runtime, addr: &str) -> Option<pb::LearnerStatus> {
+    runtime.block_on(async {
+        let mut client = LearnerClient::connect(format!("http://{addr}"))
+            .await
+            .ok()?;
+        let status = client.get_status(pb::LearnerStatusRequest {}).await.ok()?;
+        Some(status.into_inner())
+    })
+}
+
+/// A loopback port free at the time of the call.
+pub fn free_port() -> u16 {
+    std::net::TcpListener::bind("127.0.0.1:0")
+        .and_then(|l| l.local_addr())
+        .expect("a free port")
+        .port()
+}
+
+/// Writes `text` to `path`; returns the path as a string for arguments.
+pub fn write(path: &Path, text: &str) -> String {
+    std::fs::write(path, text).unwrap_or_else(|e| panic!("cannot write {}: {e}", path.display()));
+    path.to_str().expect("a UTF-8 path").to_string()
 }

@@ -2,79 +2,9 @@
 //! learner's snapshots once uniform exploration ends, and carries on
 //! through a learner restart without losing or repeating a step.
 
-use std::io::{BufRead, BufReader};
-use std::path::Path;
-use std::process::{Child, Command, Stdio};
+use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
-use tweezer_proto::pb;
-use tweezer_proto::pb::learner_client::LearnerClient;
-use tweezer_system_tests::binary;
-
-const ENV: &str = r#"
-[env]
-min_free_spheres = 0
-max_free_spheres = 0
-time_limit = 200
-[env.image]
-width = 20
-height = 16
-"#;
-
-/// Starts `learner serve` with `args`; returns it once it listens.
-fn start_learner(args: &[&str]) -> Child {
-    let mut child = Command::new(binary("learner"))
-        .arg("serve")
-        .args(args)
-        .stdout(Stdio::piped())
-        .stderr(Stdio::null())
-        .spawn()
-        .unwrap();
-    let mut line = String::new();
-    BufReader::new(child.stdout.take().unwrap())
-        .read_line(&mut line)
-        .unwrap();
-    assert!(line.starts_with("learner listening on"), "{line:?}");
-    child
-}
-
-/// SIGTERM, and the exit status.
-fn stop(child: &mut Child) -> std::process::ExitStatus {
-    Command::new("kill")
-        .args(["-TERM", &child.id().to_string()])
-        .status()
-        .unwrap();
-    let deadline = Instant::now() + Duration::from_secs(60);
-    loop {
-        if let Some(status) = child.try_wait().unwrap() {
-            return status;
-        }
-        assert!(Instant::now() < deadline, "process did not stop");
-        std::thread::sleep(Duration::from_millis(50));
-    }
-}
-
-fn status(runtime: &tokio::runtime::Runtime, addr: &str) -> Option<pb::LearnerStatus> {
-    runtime.block_on(async {
-        let mut client = LearnerClient::connect(format!("http://{addr}"))
-            .await
-            .ok()?;
-        let status = client.get_status(pb::LearnerStatusRequest {}).await.ok()?;
-        Some(status.into_inner())
-    })
-}
-
-fn free_port() -> u16 {
-    std::net::TcpListener::bind("127.0.0.1:0")
-        .unwrap()
-        .local_addr()
-        .unwrap()
-        .port()
-}
-
-fn write(path: &Path, text: &str) -> String {
-    std::fs::write(path, text).unwrap();
-    path.to_str().unwrap().to_string()
-}
+use tweezer_system_tests::{TINY_ENV, binary, free_port, start_learner, status, stop, write};
 
 #[test]
 fn an_actor_streams_through_a_learner_restart_without_losing_or_repeating_steps() {
@@ -84,7 +14,7 @@ fn an_actor_streams_through_a_learner_restart_without_losing_or_repeating_steps(
     let learner_config = write(
         &dir.path().join("learner.toml"),
         &format!(
-            "{ENV}\n[learner]\nlisten = \"{addr}\"\nuniform_steps = 1000\n\
+            "{TINY_ENV}\n[learner]\nlisten = \"{addr}\"\nuniform_steps = 1000\n\
              [learner.limiter]\nmin_size = 200\nupdates_per_insert = 0.25\n\
              [learner.snapshots]\nevery_updates = 100\n\
              [learner.checkpoints]\nevery_seconds = 0\nreplay = true\n"
@@ -93,7 +23,7 @@ fn an_actor_streams_through_a_learner_restart_without_losing_or_repeating_steps(
     let actor_config = write(
         &dir.path().join("actor.toml"),
         &format!(
-            "{ENV}\n[actor]\nlearner = \"http://{addr}\"\nid = \"streaming-test\"\n\
+            "{TINY_ENV}\n[actor]\nlearner = \"http://{addr}\"\nid = \"streaming-test\"\n\
              envs = 4\nbatch_steps = 100\nmax_unacked = 2\n\
              reconnect_initial_ms = 50\nreconnect_max_ms = 400\n"
         ),
@@ -103,7 +33,7 @@ fn an_actor_streams_through_a_learner_restart_without_losing_or_repeating_steps(
         .build()
         .unwrap();
 
-    let mut learner = start_learner(&[
+    let (learner, _) = start_learner(&[
         "--config",
         &learner_config,
         "--run-dir",
@@ -122,9 +52,9 @@ fn an_actor_streams_through_a_learner_restart_without_losing_or_repeating_steps(
         assert!(Instant::now() < deadline, "the actor's steps never arrived");
         std::thread::sleep(Duration::from_millis(100));
     }
-    assert!(stop(&mut learner).success());
+    assert!(stop(learner).0.success());
     std::thread::sleep(Duration::from_millis(300));
-    let mut learner = start_learner(&["--resume", run_dir.to_str().unwrap()]);
+    let (learner, _) = start_learner(&["--resume", run_dir.to_str().unwrap()]);
 
     let deadline = Instant::now() + Duration::from_secs(240);
     let exit = loop {
@@ -156,5 +86,5 @@ fn an_actor_streams_through_a_learner_restart_without_losing_or_repeating_steps(
     );
     assert!(!learned.explore_uniformly);
     assert!(learned.updates > 0);
-    assert!(stop(&mut learner).success());
+    assert!(stop(learner).0.success());
 }

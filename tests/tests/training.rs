@@ -1,0 +1,316 @@
+//! Training with real processes: a learner and two actors on loopback
+//! through the SIGKILL of an actor and of the learner, and the one-command
+//! `learner train` stopped by SIGINT.
+
+use std::path::Path;
+use std::process::{Child, Command, Stdio};
+use std::time::{Duration, Instant};
+use tweezer_proto::pb;
+use tweezer_system_tests::{
+    TINY_ENV, binary, free_port, signal, start_learner, status, stop, write,
+};
+
+/// Processes killed when a test ends early.
+struct Processes(Vec<Child>);
+
+impl Drop for Processes {
+    fn drop(&mut self) {
+        for child in &mut self.0 {
+            let _ = child.kill();
+            let _ = child.wait();
+        }
+    }
+}
+
+fn start_actor(config: &str, id: &str, seed: u64) -> Child {
+    Command::new(binary("actor"))
+        .args(["--config", config, "run", "--id", id])
+        .args(["--seed", &seed.to_string()])
+        .stdout(Stdio::piped())
+        .stderr(Stdio::null())
+        .spawn()
+        .unwrap()
+}
+
+/// Polls the learner until `done` holds; panics naming `what` after `limit`.
+fn wait_for(
+    runtime: &tokio::runtime::Runtime,
+    addr: &str,
+    what: &str,
+    limit: Duration,
+    done: impl Fn(&pb::LearnerStatus) -> bool,
+) -> pb::LearnerStatus {
+    let deadline = Instant::now() + limit;
+    let mut last = None;
+    loop {
+        if let Some(s) = status(runtime, addr) {
+            if done(&s) {
+                return s;
+            }
+            last = Some(s);
+        }
+        assert!(
+            Instant::now() < deadline,
+            "never {what}; last status {last:?}"
+        );
+        std::thread::sleep(Duration::from_millis(100));
+    }
+}
+
+/// The newest checkpoint's (updates, steps), from its file name.
+fn newest_checkpoint(dir: &Path) -> Option<(u64, u64)> {
+    std::fs::read_dir(dir)
+        .ok()?
+        .filter_map(|e| {
+            let name = e.ok()?.file_name().into_string().ok()?;
+            let counts = name.strip_prefix("ckpt-")?.strip_suffix(".twz")?;
+            let (updates, steps) = counts.split_once('-')?;
+            Some((updates.parse().ok()?, steps.parse().ok()?))
+        })
+        .max()
+}
+
+/// `learner train` of the train file `train` into `out`, with a JSON summary.
+fn train_command(train: &str, out: &Path) -> Command {
+    let mut command = Command::new(binary("learner"));
+    command
+        .args(["--config", train, "train", "--json", "--out"])
+        .arg(out)
+        .arg("--actor-bin")
+        .arg(binary("actor"));
+    command
+}
+
+fn report(stdout: &str) -> serde_json::Value {
+    serde_json::from_str(stdout.trim()).unwrap_or_else(|e| panic!("{e}: {stdout:?}"))
+}
+
+#[test]
+fn two_actors_train_through_the_sigkill_of_an_actor_and_of_the_learner() {
+    let dir = tempfile::tempdir().unwrap();
+    let addr = format!("127.0.0.1:{}", free_port());
+    let run_dir = dir.path().join("run");
+    let learner_config = write(
+        &dir.path().join("learner.toml"),
+        &format!(
+            "{TINY_ENV}\n[learner]\nlisten = \"{addr}\"\nuniform_steps = 500\n\
+             [learner.limiter]\nmin_size = 200\nupdates_per_insert = 0.25\n\
+             [learner.snapshots]\nevery_updates = 50\n\
+             [learner.checkpoints]\nevery_seconds = 1\nkeep = 2\n"
+        ),
+    );
+    let actor_config = write(
+        &dir.path().join("actor.toml"),
+        &format!(
+            "{TINY_ENV}\n[actor]\nlearner = \"http://{addr}\"\nenvs = 4\nbatch_steps = 50\n\
+             max_unacked = 2\nreconnect_initial_ms = 50\nreconnect_max_ms = 400\n"
+        ),
+    );
+    let runtime = tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()
+        .unwrap();
+    let (learner, _) = start_learner(&[
+        "--config",
+        &learner_config,
+        "--run-dir",
+        run_dir.to_str().unwrap(),
+    ]);
+    let mut procs = Processes(vec![
+        learner,
+        start_actor(&actor_config, "actor-a", 1),
+        start_actor(&actor_config, "actor-b", 2),
+    ]);
+    let minute = Duration::from_secs(60);
+
+    // Both stream, and the actors act with the learner's snapshots.
+    wait_for(
+        &runtime,
+        &addr,
+        "two actors past exploration",
+        2 * minute,
+        |s| s.connected_actors == 2 && !s.explore_uniformly && s.latest_snapshot >= 3,
+    );
+
+    // SIGKILL of one actor: the learner trains on; the actor, restarted
+    // under its id, rejoins and its steps are stored again.
+    procs.0[2].kill().unwrap();
+    procs.0[2].wait().unwrap();
+    let alone = wait_for(&runtime, &addr, "the learner noticing", minute, |s| {
+        s.connected_actors == 1
+    });
+    wait_for(&runtime, &addr, "training on with one actor", minute, |s| {
+        s.updates >= alone.updates + 50
+    });
+    procs.0[2] = start_actor(&actor_config, "actor-b", 3);
+    let rejoined = wait_for(&runtime, &addr, "the actor rejoining", minute, |s| {
+        s.connected_actors == 2
+    });
+    wait_for(&runtime, &addr, "the rejoined actor's steps", minute, |s| {
+        s.steps_inserted >= rejoined.steps_inserted + 400
+    });
+
+    // SIGKILL of the learner: resumed from its newest checkpoint, it starts
+    // from the checkpointed counts and the actors come back by themselves.
+    let checkpoints = run_dir.join("checkpoints");
+    let deadline = Instant::now() + minute;
+    while newest_checkpoint(&checkpoints).is_none_or(|(updates, _)| updates == 0) {
+        assert!(Instant::now() < deadline, "no periodic checkpoint");
+        std::thread::sleep(Duration::from_millis(100));
+    }
+    procs.0[0].kill().unwrap();
+    procs.0[0].wait().unwrap();
+    let (updates, steps) = newest_checkpoint(&checkpoints).unwrap();
+    procs.0[0] = start_learner(&["--resume", run_dir.to_str().unwrap()]).0;
+    // The actors may already be back with a few batches.
+    let resumed = status(&runtime, &addr).unwrap();
+    assert!(
+        resumed.updates >= updates
+            && resumed.updates < updates + 100
+            && resumed.steps_inserted >= steps
+            && resumed.steps_inserted < steps + 2_000,
+        "resumed from the newest checkpoint ({updates} updates, {steps} steps): {resumed:?}"
+    );
+    wait_for(
+        &runtime,
+        &addr,
+        "training continuing with both actors",
+        2 * minute,
+        |s| {
+            s.connected_actors == 2
+                && s.updates >= updates + 100
+                && s.latest_snapshot > resumed.latest_snapshot
+        },
+    );
+
+    let learner = procs.0.remove(0);
+    let mut reports = Vec::new();
+    for actor in procs.0.drain(..) {
+        let (exit, stdout) = stop(actor);
+        assert!(exit.success());
+        reports.push(report(&stdout));
+    }
+    for r in &reports {
+        assert!(r["steps_acked"].as_u64().unwrap() > 0, "{r}");
+        assert!(r["reconnects"].as_u64().unwrap() >= 1, "{r}");
+        let versions = r["snapshots_loaded"].as_array().unwrap();
+        assert!(
+            versions.len() >= 2,
+            "snapshots propagate to each actor: {r}"
+        );
+    }
+    assert!(stop(learner).0.success());
+}
+
+#[test]
+fn sigint_stops_a_one_command_run_with_a_loadable_final_checkpoint() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("run");
+    let train = write(
+        &dir.path().join("train.toml"),
+        &format!(
+            "{TINY_ENV}\n[learner]\nuniform_steps = 300\n\
+             [learner.limiter]\nmin_size = 200\nupdates_per_insert = 0.25\n\
+             [learner.snapshots]\nevery_updates = 50\n\
+             [learner.checkpoints]\nevery_seconds = 0\n\
+             [actor]\nenvs = 4\nbatch_steps = 50\n\
+             [train]\nactors = 2\nminutes = 0\neval_seeds = \"0..8\"\npicture_seeds = \"0..1\"\n"
+        ),
+    );
+    let child = train_command(&train, &out)
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let mut procs = Processes(vec![child]);
+    let deadline = Instant::now() + Duration::from_secs(120);
+    while !out.join("snapshots/v000003.safetensors").exists() {
+        assert!(Instant::now() < deadline, "the run never published v3");
+        std::thread::sleep(Duration::from_millis(100));
+    }
+    signal(&procs.0[0], "INT");
+    let mut child = procs.0.remove(0);
+    let deadline = Instant::now() + Duration::from_secs(180);
+    while child.try_wait().unwrap().is_none() {
+        assert!(Instant::now() < deadline, "the run did not stop");
+        std::thread::sleep(Duration::from_millis(100));
+    }
+    let output = child.wait_with_output().unwrap();
+    assert!(
+        output.status.success(),
+        "{}",
+        String::from_utf8_lossy(&output.stderr)
+    );
+    let outcome = report(&String::from_utf8(output.stdout).unwrap());
+    let summary = &outcome["runs"][0];
+    assert_eq!(summary["interrupted"], true, "{outcome}");
+    assert!(summary["updates"].as_u64().unwrap() > 0, "{outcome}");
+    let rows = outcome["report"]["rows"].as_array().unwrap();
+    assert_eq!(rows.len(), 2, "the best snapshot and greedy: {summary}");
+    for file in [
+        "train.toml",
+        "config.toml",
+        "actor.toml",
+        "report/eval.md",
+        "report/eval.json",
+    ] {
+        assert!(out.join(file).is_file(), "{file}");
+    }
+
+    // The final checkpoint loads: a resumed learner has every update.
+    let (updates, steps) = newest_checkpoint(&out.join("checkpoints")).expect("a final checkpoint");
+    assert!(updates >= summary["updates"].as_u64().unwrap(), "{outcome}");
+    let (learner, addr) =
+        start_learner(&["--listen", "127.0.0.1:0", "--resume", out.to_str().unwrap()]);
+    let runtime = tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()
+        .unwrap();
+    let resumed = status(&runtime, &addr).unwrap();
+    assert_eq!((resumed.updates, resumed.steps_inserted), (updates, steps));
+    assert!(stop(learner).0.success());
+}
+
+#[test]
+fn a_sweep_trains_each_run_in_turn_and_reports_them_together() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("sweep");
+    let train = write(
+        &dir.path().join("sweep.toml"),
+        &format!(
+            "{TINY_ENV}\n[learner]\nuniform_steps = 300\n\
+             [learner.limiter]\nmin_size = 200\nupdates_per_insert = 0.25\n\
+             [learner.snapshots]\nevery_updates = 50\n\
+             [actor]\nenvs = 4\nbatch_steps = 50\n\
+             [train]\nminutes = 0.15\neval_seeds = \"0..4\"\npicture_seeds = \"0\"\n\
+             [sweep]\nseeds = [1, 2]\ngamma = [0.8]\n"
+        ),
+    );
+    let output = train_command(&train, &out).output().unwrap();
+    assert!(
+        output.status.success(),
+        "{}",
+        String::from_utf8_lossy(&output.stderr)
+    );
+    let outcome = report(&String::from_utf8(output.stdout).unwrap());
+    let runs = outcome["runs"].as_array().unwrap();
+    assert_eq!(runs.len(), 2, "{outcome}");
+    for (run, seed) in runs.iter().zip([1, 2]) {
+        let run_dir = out.join(format!("gamma0.8-seed{seed}"));
+        assert_eq!(run["run_dir"], run_dir.to_str().unwrap(), "{outcome}");
+        assert!(run["updates"].as_u64().unwrap() > 0, "{outcome}");
+        assert!(newest_checkpoint(&run_dir.join("checkpoints")).is_some());
+        let file = std::fs::read_to_string(run_dir.join("train.toml")).unwrap();
+        assert!(file.contains("gamma = 0.8") && file.contains(&format!("seed = {seed}")));
+    }
+    let rows = outcome["report"]["rows"].as_array().unwrap();
+    let policies: Vec<&str> = rows.iter().map(|r| r["policy"].as_str().unwrap()).collect();
+    assert_eq!(
+        policies.len(),
+        3,
+        "two best snapshots and greedy: {policies:?}"
+    );
+    assert_eq!(policies[2], "greedy");
+    let fig4 = std::fs::read_to_string(out.join("report/fig4-reward.svg")).unwrap();
+    assert!(fig4.contains("gamma 0.8 (2 runs)"), "the runs are averaged");
+}
