@@ -1,0 +1,207 @@
+//! APT framing: a 6-byte header (message id, two parameter bytes or a data
+//! length, destination, source), followed by a data packet when the
+//! destination byte has its top bit set. Little-endian throughout.
+
+use std::io::Read;
+
+/// Bytes in a header.
+pub const HEADER_LEN: usize = 6;
+/// The longest data packet any message we read carries (HW_GET_INFO: 84).
+const MAX_DATA: usize = 255;
+
+/// One message on the wire.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub enum Frame {
+    /// A header-only message with its two parameter bytes.
+    Short {
+        /// Message id.
+        id: u16,
+        /// First parameter byte.
+        param1: u8,
+        /// Second parameter byte.
+        param2: u8,
+        /// Destination address.
+        dest: u8,
+        /// Source address.
+        source: u8,
+    },
+    /// A header followed by a data packet.
+    Long {
+        /// Message id.
+        id: u16,
+        /// Destination address (without the data flag).
+        dest: u8,
+        /// Source address.
+        source: u8,
+        /// The data packet.
+        data: Vec<u8>,
+    },
+}
+
+/// What can go wrong between the driver and a controller.
+#[derive(Debug, thiserror::Error)]
+pub enum AptError {
+    /// The serial port failed or closed.
+    #[error("serial I/O: {0}")]
+    Io(#[from] std::io::Error),
+    /// No (complete) reply in time.
+    #[error("no reply from the controller within {0:?}")]
+    Timeout(std::time::Duration),
+    /// A header announcing more data than any message carries.
+    #[error("message 0x{id:04x} announces {len} data bytes (at most {MAX_DATA})")]
+    Oversized {
+        /// Message id.
+        id: u16,
+        /// Announced length.
+        len: usize,
+    },
+    /// A message that is not what the driver expects here.
+    #[error("unexpected reply: {0}")]
+    Unexpected(String),
+    /// A known message with a data packet of the wrong size.
+    #[error("message 0x{id:04x} carries {got} data bytes, expected {expected}")]
+    Length {
+        /// Message id.
+        id: u16,
+        /// Bytes received.
+        got: usize,
+        /// Bytes the message has.
+        expected: usize,
+    },
+    /// The controller reported an error (HW_RESPONSE / HW_RICHRESPONSE).
+    #[error("the controller reports error {code}: {text}")]
+    Device {
+        /// The controller's error code.
+        code: u16,
+        /// Its description.
+        text: String,
+    },
+}
+
+impl Frame {
+    /// The message id.
+    pub fn id(&self) -> u16 {
+        match self {
+            Self::Short { id, .. } | Self::Long { id, .. } => *id,
+        }
+    }
+
+    /// The bytes on the wire.
+    pub fn encode(&self) -> Vec<u8> {
+        match self {
+            Self::Short {
+                id,
+                param1,
+                param2,
+                dest,
+                source,
+            } => {
+                let [a, b] = id.to_le_bytes();
+                vec![a, b, *param1, *param2, *dest & 0x7f, *source]
+            }
+            Self::Long {
+                id,
+                dest,
+                source,
+                data,
+            } => {
+                let [a, b] = id.to_le_bytes();
+                let [l0, l1] = (data.len() as u16).to_le_bytes();
+                let mut bytes = vec![a, b, l0, l1, *dest | 0x80, *source];
+                bytes.extend_from_slice(data);
+                bytes
+            }
+        }
+    }
+}
+
+/// Reads whole frames from a byte stream.
+#[derive(Debug)]
+pub struct FrameReader<R> {
+    inner: R,
+}
+
+impl<R: Read> FrameReader<R> {
+    /// Frames from `inner`.
+    pub fn new(inner: R) -> Self {
+        Self { inner }
+    }
+
+    /// The next frame. A read timeout of the underlying stream surfaces as
+    /// an I/O error of kind `TimedOut` or `WouldBlock`.
+    pub fn read_frame(&mut self) -> Result<Frame, AptError> {
+        let mut header = [0u8; HEADER_LEN];
+        self.inner.read_exact(&mut header)?;
+        let id = u16::from_le_bytes([header[0], header[1]]);
+        let (dest, source) = (header[4], header[5]);
+        if dest & 0x80 == 0 {
+            return Ok(Frame::Short {
+                id,
+                param1: header[2],
+                param2: header[3],
+                dest,
+                source,
+            });
+        }
+        let len = usize::from(u16::from_le_bytes([header[2], header[3]]));
+        if len > MAX_DATA {
+            return Err(AptError::Oversized { id, len });
+        }
+        let mut data = vec![0u8; len];
+        self.inner.read_exact(&mut data)?;
+        Ok(Frame::Long {
+            id,
+            dest: dest & 0x7f,
+            source,
+            data,
+        })
+    }
+
+    /// The underlying stream.
+    pub fn get_mut(&mut self) -> &mut R {
+        &mut self.inner
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn short_and_long_frames_round_trip() {
+        let short = Frame::Short {
+            id: 0x0457,
+            param1: 0x01,
+            param2: 0x02,
+            dest: 0x50,
+            source: 0x01,
+        };
+        assert_eq!(short.encode(), [0x57, 0x04, 0x01, 0x02, 0x50, 0x01]);
+        let long = Frame::Long {
+            id: 0x0413,
+            dest: 0x50,
+            source: 0x01,
+            data: vec![1, 2, 3],
+        };
+        assert_eq!(long.encode(), [0x13, 0x04, 3, 0, 0xd0, 0x01, 1, 2, 3]);
+        let mut bytes = short.encode();
+        bytes.extend(long.encode());
+        let mut reader = FrameReader::new(bytes.as_slice());
+        assert_eq!(reader.read_frame().unwrap(), short);
+        assert_eq!(reader.read_frame().unwrap(), long);
+        assert!(matches!(reader.read_frame(), Err(AptError::Io(_))));
+    }
+
+    #[test]
+    fn truncated_and_oversized_frames_are_errors() {
+        let mut reader = FrameReader::new(&[0x13, 0x04, 3, 0, 0xd0, 0x01, 1][..]);
+        assert!(matches!(reader.read_frame(), Err(AptError::Io(_))));
+        let mut reader = FrameReader::new(&[0x13, 0x04, 0xff, 0xff, 0xd0, 0x01][..]);
+        let err = reader.read_frame().unwrap_err();
+        assert!(
+            matches!(err, AptError::Oversized { len: 65535, .. }),
+            "{err}"
+        );
+        assert!(err.to_string().contains("0x0413"));
+    }
+}
