@@ -89,6 +89,11 @@ impl SimulatedController {
         self.carriage_mm
     }
 
+    /// The motor's signed speed, mm/s.
+    pub fn speed_mm_s(&self) -> f64 {
+        self.velocity_mm_s
+    }
+
     /// Whether status updates are switched on (HW_START_UPDATEMSGS).
     pub fn sends_updates(&self) -> bool {
         self.updates
@@ -210,10 +215,11 @@ impl SimulatedController {
         DcStatus {
             channel: Channel(1),
             position: self.units.counts(self.motor_mm),
-            velocity: self
-                .units
-                .velocity(self.velocity_mm_s.abs())
-                .clamp(0, i32::from(u16::MAX)) as u16,
+            // The status word's velocity: encoder counts per second / 1,000
+            // (informational; the driver does not read it).
+            velocity: (self.velocity_mm_s.abs() * self.units.counts_per_mm / 1000.0)
+                .round()
+                .min(f64::from(u16::MAX)) as u16,
             bits,
         }
     }

@@ -122,7 +122,7 @@ pub struct DcStatus {
     pub channel: Channel,
     /// Position counter, encoder counts.
     pub position: i32,
-    /// Velocity, device units.
+    /// Velocity as the status word carries it (informational).
     pub velocity: u16,
     /// Status bits (limit switches, moving, homed, errors, enabled).
     pub bits: u32,
