@@ -27,6 +27,11 @@ pub fn write_atomic(
     result
 }
 
+/// Writes the whole of `bytes` to `path` atomically (see [`write_atomic`]).
+pub fn write_bytes_atomic(path: &Path, bytes: &[u8]) -> io::Result<()> {
+    write_atomic(path, |w| w.write_all(bytes))
+}
+
 /// Makes `to` another name for the file `from`, atomically replacing what
 /// `to` named before (a hard link, renamed into place).
 pub fn link_atomic(from: &Path, to: &Path) -> io::Result<()> {

@@ -121,12 +121,18 @@ impl Run {
     ) -> anyhow::Result<Option<Chosen>> {
         let candidates = self.candidates()?;
         let Some(validation) = validation else {
-            return Ok(candidates.first().map(|path| Chosen {
+            let Some(path) = candidates.first() else {
+                return Ok(None);
+            };
+            let (policy, info) = NetworkPolicy::from_file(path, &self.env, device)?;
+            return Ok(Some(Chosen {
                 path: path.clone(),
                 how: "best rolling return".into(),
+                policy,
+                version: info.version,
             }));
         };
-        let mut chosen: Option<(PathBuf, u64, EvalSummary)> = None;
+        let mut chosen: Option<(Chosen, EvalSummary)> = None;
         let mut seen = Vec::new();
         for path in &candidates {
             let (mut policy, info) = NetworkPolicy::from_file(path, &self.env, device)?;
@@ -136,25 +142,31 @@ impl Run {
             seen.push(info.version);
             let summary = EvalSummary::of(&evaluate(&self.env, &mut policy, validation, batch)?);
             tracing::info!(run = %self.dir.display(), version = info.version, success = summary.success_rate, "validated");
-            if chosen.as_ref().is_none_or(|(_, _, b)| better(&summary, b)) {
-                chosen = Some((path.clone(), info.version, summary));
+            if chosen.as_ref().is_none_or(|(_, b)| better(&summary, b)) {
+                let candidate = Chosen {
+                    path: path.clone(),
+                    how: String::new(),
+                    policy,
+                    version: info.version,
+                };
+                chosen = Some((candidate, summary));
             }
         }
-        Ok(chosen.map(|(path, _, _)| Chosen {
-            path,
-            how: format!(
-                "best of {} on validation seeds {}",
-                seen.len(),
-                describe_seeds(validation)
-            ),
-        }))
+        let how = format!(
+            "best of {} on validation seeds {}",
+            seen.len(),
+            describe_seeds(validation)
+        );
+        Ok(chosen.map(|(chosen, _)| Chosen { how, ..chosen }))
     }
 }
 
-/// The snapshot a run is reported with, and how it was chosen.
+/// The snapshot a run is reported with, loaded, and how it was chosen.
 struct Chosen {
     path: PathBuf,
     how: String,
+    policy: NetworkPolicy,
+    version: u64,
 }
 
 /// The run's label from its train file, or the directory's name.
@@ -240,31 +252,30 @@ pub fn write(runs: &[PathBuf], out: &Path, options: &ReportOptions) -> anyhow::R
 
     let device = Device::flex();
     let mut rows = Vec::new();
-    let mut best: Option<(usize, PathBuf, EvalSummary)> = None;
+    let mut best: Option<(usize, NetworkPolicy, EvalSummary)> = None;
     for (k, run) in runs.iter().enumerate() {
         let validation = options.validation_seeds.as_deref();
-        let Some(chosen) = run.choose(validation, options.batch, &device)? else {
+        let Some(mut chosen) = run.choose(validation, options.batch, &device)? else {
             tracing::warn!(run = %run.dir.display(), "no best snapshot yet: not evaluated");
             continue;
         };
-        let (mut policy, info) = NetworkPolicy::from_file(&chosen.path, &run.env, &device)?;
         let summary = EvalSummary::of(&evaluate(
             &run.env,
-            &mut policy,
+            &mut chosen.policy,
             &options.seeds,
             options.batch,
         )?);
-        if best.as_ref().is_none_or(|(_, _, b)| better(&summary, b)) {
-            best = Some((k, chosen.path.clone(), summary));
-        }
         rows.push(EvalRow {
             label: run.label.clone(),
             run: run.dir.display().to_string(),
-            policy: format!("v{}", info.version),
+            policy: format!("v{}", chosen.version),
             chosen_by: chosen.how,
             snapshot: chosen.path.display().to_string(),
             summary,
         });
+        if best.as_ref().is_none_or(|(_, _, b)| better(&summary, b)) {
+            best = Some((k, chosen.policy, summary));
+        }
     }
     let mut baselines: Vec<&EnvConfig> = Vec::new();
     for run in &runs {
@@ -288,9 +299,8 @@ pub fn write(runs: &[PathBuf], out: &Path, options: &ReportOptions) -> anyhow::R
         });
     }
 
-    if let Some((k, path, _)) = best {
+    if let Some((k, mut policy, _)) = best {
         let run = &runs[k];
-        let (mut policy, _) = NetworkPolicy::from_file(&path, &run.env, &device)?;
         let pictures = draw_episodes(&run.env, &mut policy, &options.picture_seeds, out)?;
         files.extend(pictures.written);
     }

@@ -6,7 +6,7 @@
 
 use crate::checkpoint::{Checkpoints, Loaded};
 use crate::config::LearnerFile;
-use crate::fsio::write_atomic;
+use crate::fsio::write_bytes_atomic;
 use crate::limiter::{Limiter, SharedLimiter};
 use crate::metrics::Metrics;
 use crate::replay::Replay;
@@ -15,7 +15,6 @@ use crate::shared::Shared;
 use crate::snapshots::Snapshots;
 use crate::training::Trainer;
 use anyhow::{Context, bail};
-use std::io::Write;
 use std::path::Path;
 use std::sync::Arc;
 use tokio::net::TcpListener;
@@ -52,10 +51,8 @@ pub fn serve(file: LearnerFile, resume: bool) -> anyhow::Result<()> {
                 run_dir.display()
             );
         }
-        write_atomic(&run_dir.join(CONFIG), |w: &mut dyn Write| {
-            w.write_all(file.to_toml().as_bytes())
-        })
-        .context("cannot write the run's config.toml")?;
+        write_bytes_atomic(&run_dir.join(CONFIG), file.to_toml().as_bytes())
+            .context("cannot write the run's config.toml")?;
         None
     };
     let shared = Arc::new(shared_state(&file, run_dir, resumed.as_ref())?);

@@ -4,10 +4,10 @@
 //! rolling return (the model the paper took to the microscope); it is kept on
 //! disk, also as `best.safetensors`, whatever the pruning of older versions.
 
-use crate::fsio::{link_atomic, write_atomic};
+use crate::fsio::{link_atomic, write_bytes_atomic};
 use serde::{Deserialize, Serialize};
 use std::collections::VecDeque;
-use std::io::{self, Write};
+use std::io;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use tweezer_nets::{SnapshotInfo, file_sha256, read_info};
@@ -156,11 +156,9 @@ impl Snapshots {
     }
 
     fn write(&self, path: &Path, bytes: &[u8]) -> Result<(), SnapshotsError> {
-        write_atomic(path, |w: &mut dyn Write| w.write_all(bytes)).map_err(|source| {
-            SnapshotsError::Io {
-                path: path.into(),
-                source,
-            }
+        write_bytes_atomic(path, bytes).map_err(|source| SnapshotsError::Io {
+            path: path.into(),
+            source,
         })
     }
 

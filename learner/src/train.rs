@@ -16,7 +16,7 @@ pub use plan::{TrainConfig, TrainFile};
 pub use sweep::{SweepConfig, SweepRun};
 
 use crate::config::LearnerFile;
-use crate::fsio::write_atomic;
+use crate::fsio::write_bytes_atomic;
 use crate::metrics::Metrics;
 use crate::report::{self, Report, ReportOptions, TRAIN_FILE};
 use crate::serve::{CONFIG, METRICS};
@@ -24,7 +24,6 @@ use anyhow::{Context, bail};
 use processes::{ActorLauncher, Process, actor_binary, start_learner, stop_actors};
 use progress::Progress;
 use serde::Serialize;
-use std::io::Write;
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 use tweezer_gym::{SplitMix64, stop_signal};
@@ -189,10 +188,8 @@ fn claim(out: &Path) -> anyhow::Result<()> {
 }
 
 fn write_file(dir: &Path, name: &str, text: &str) -> anyhow::Result<()> {
-    write_atomic(&dir.join(name), |w: &mut dyn Write| {
-        w.write_all(text.as_bytes())
-    })
-    .with_context(|| format!("cannot write {}", dir.join(name).display()))
+    write_bytes_atomic(&dir.join(name), text.as_bytes())
+        .with_context(|| format!("cannot write {}", dir.join(name).display()))
 }
 
 /// A fresh run directory with the run's files: `train.toml` (everything),
