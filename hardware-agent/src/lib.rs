@@ -7,5 +7,6 @@ pub mod apt;
 pub mod camera;
 pub mod config;
 pub mod segment;
+pub mod serial;
 pub mod stage;
 pub mod twin;

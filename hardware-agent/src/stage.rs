@@ -158,8 +158,18 @@ impl<P: Read + Write> Stage<P> {
     }
 
     /// The next reply `wanted` accepts, skipping status messages the
-    /// controller sends by itself; any other message is an error.
+    /// controller sends by itself. A timeout, a malformed reply or any
+    /// other message is an error, and the motor is stopped (immediately)
+    /// before it is returned.
     fn await_reply(&mut self, wanted: impl Fn(&Reply) -> bool) -> Result<Reply, AptError> {
+        let reply = self.read_reply(wanted);
+        if reply.is_err() {
+            let _ = self.send(Command::Stop(CHANNEL, StopMode::Immediate));
+        }
+        reply
+    }
+
+    fn read_reply(&mut self, wanted: impl Fn(&Reply) -> bool) -> Result<Reply, AptError> {
         let deadline = Instant::now() + self.timeout;
         loop {
             let frame = match self.io.read_frame() {

@@ -172,7 +172,10 @@ fn the_segment_command_prints_one_json_line_per_file_and_names_a_bad_one() {
     assert_eq!(centres.len(), scene.len());
     for c in centres {
         let (x, y) = (c[0].as_f64().unwrap(), c[1].as_f64().unwrap());
-        assert!(scene.iter().any(|s| (s[0] - x).hypot(s[1] - y) < 1.0), "{c}");
+        assert!(
+            scene.iter().any(|s| (s[0] - x).hypot(s[1] - y) < 1.0),
+            "{c}"
+        );
     }
     assert_eq!(stdout.lines().count(), 1);
     let stderr = String::from_utf8(out.stderr).unwrap();

@@ -115,46 +115,82 @@ impl Frame {
     }
 }
 
-/// Reads whole frames from a byte stream.
+/// Reads whole frames from a byte stream, keeping a partial frame across
+/// read timeouts.
 #[derive(Debug)]
 pub struct FrameReader<R> {
     inner: R,
+    pending: Vec<u8>,
 }
 
 impl<R: Read> FrameReader<R> {
     /// Frames from `inner`.
     pub fn new(inner: R) -> Self {
-        Self { inner }
+        Self {
+            inner,
+            pending: Vec::with_capacity(HEADER_LEN + MAX_DATA),
+        }
     }
 
     /// The next frame. A read timeout of the underlying stream surfaces as
-    /// an I/O error of kind `TimedOut` or `WouldBlock`.
+    /// an I/O error of kind `TimedOut` or `WouldBlock`; the bytes of a frame
+    /// not yet whole are kept for the next call.
     pub fn read_frame(&mut self) -> Result<Frame, AptError> {
-        let mut header = [0u8; HEADER_LEN];
-        self.inner.read_exact(&mut header)?;
+        loop {
+            if let Some(frame) = self.take_frame()? {
+                return Ok(frame);
+            }
+            let mut chunk = [0u8; HEADER_LEN + MAX_DATA];
+            let n = match self.inner.read(&mut chunk) {
+                Ok(0) => {
+                    return Err(AptError::Io(std::io::Error::new(
+                        std::io::ErrorKind::UnexpectedEof,
+                        "the port closed",
+                    )));
+                }
+                Ok(n) => n,
+                Err(e) if e.kind() == std::io::ErrorKind::Interrupted => continue,
+                Err(e) => return Err(e.into()),
+            };
+            self.pending.extend_from_slice(&chunk[..n]);
+        }
+    }
+
+    /// The first whole frame of the pending bytes, removed from them.
+    fn take_frame(&mut self) -> Result<Option<Frame>, AptError> {
+        let Some(header) = self.pending.get(..HEADER_LEN) else {
+            return Ok(None);
+        };
         let id = u16::from_le_bytes([header[0], header[1]]);
         let (dest, source) = (header[4], header[5]);
         if dest & 0x80 == 0 {
-            return Ok(Frame::Short {
+            let frame = Frame::Short {
                 id,
                 param1: header[2],
                 param2: header[3],
                 dest,
                 source,
-            });
+            };
+            self.pending.drain(..HEADER_LEN);
+            return Ok(Some(frame));
         }
         let len = usize::from(u16::from_le_bytes([header[2], header[3]]));
         if len > MAX_DATA {
+            // Nothing after a corrupt header can be trusted.
+            self.pending.clear();
             return Err(AptError::Oversized { id, len });
         }
-        let mut data = vec![0u8; len];
-        self.inner.read_exact(&mut data)?;
-        Ok(Frame::Long {
+        if self.pending.len() < HEADER_LEN + len {
+            return Ok(None);
+        }
+        let data = self.pending[HEADER_LEN..HEADER_LEN + len].to_vec();
+        self.pending.drain(..HEADER_LEN + len);
+        Ok(Some(Frame::Long {
             id,
             dest: dest & 0x7f,
             source,
             data,
-        })
+        }))
     }
 
     /// The underlying stream.

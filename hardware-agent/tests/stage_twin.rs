@@ -1,0 +1,117 @@
+//! The stage driver over a real serial-port stack, against the simulated
+//! KDC101 on a pseudo-terminal: identify, move, read, stop, and stop on
+//! every kind of bad reply.
+
+use std::time::{Duration, Instant};
+use tweezer_hardware_agent::apt::{ActuatorModel, AptError, StopMode, Z8Units};
+use tweezer_hardware_agent::serial::open_port;
+use tweezer_hardware_agent::stage::{Commanded, Stage, StageLimits};
+use tweezer_hardware_agent::twin::{Fault, TwinStage};
+
+const LIMITS: StageLimits = StageLimits {
+    min_mm: 0.5,
+    max_mm: 11.5,
+    max_speed_mm_s: 2.0,
+    acceleration_mm_s2: 4.0,
+    command_interval_s: 0.5,
+};
+
+fn connect(twin: &TwinStage) -> Stage<serialport::TTYPort> {
+    let port = open_port(twin.path()).unwrap();
+    let (stage, info) =
+        Stage::connect(port, Z8Units::default(), LIMITS, Duration::from_millis(300)).unwrap();
+    assert_eq!(info.serial, 27_000_001);
+    assert_eq!(info.model, "KDC101");
+    stage
+}
+
+fn twin() -> TwinStage {
+    TwinStage::spawn(
+        27_000_001,
+        ActuatorModel::default(),
+        Duration::from_millis(2),
+    )
+    .unwrap()
+}
+
+/// Waits until the simulated motor stands still; how long that took.
+fn until_still(twin: &TwinStage) -> Duration {
+    let start = Instant::now();
+    while twin.controller().speed_mm_s() != 0.0 {
+        assert!(
+            start.elapsed() < Duration::from_secs(2),
+            "the motor kept moving"
+        );
+        std::thread::sleep(Duration::from_millis(2));
+    }
+    start.elapsed()
+}
+
+#[test]
+fn the_driver_identifies_moves_reads_and_stops_the_twin_over_a_serial_port() {
+    let twin = twin();
+    let mut stage = connect(&twin);
+    let start = stage.position_mm().unwrap();
+    assert!((start - 6.0).abs() < 1e-4, "{start}");
+
+    assert_eq!(stage.set_velocity(0.5).unwrap(), Commanded::Moving(0.5));
+    std::thread::sleep(Duration::from_millis(400));
+    let moved = stage.position_mm().unwrap() - start;
+    // 0.4 s at 0.5 mm/s, less the 62.5 ms of acceleration: ~0.18 mm.
+    assert!((0.12..0.5).contains(&moved), "{moved}");
+    assert!((twin.controller().speed_mm_s() - 0.5).abs() < 1e-5);
+
+    // Reversal, clamping, then a profiled stop.
+    assert_eq!(stage.set_velocity(-9.0).unwrap(), Commanded::Moving(-2.0));
+    std::thread::sleep(Duration::from_millis(300));
+    // From +0.5 toward -2 mm/s at 4 mm/s²: about -0.7 mm/s by now.
+    let speed = twin.controller().speed_mm_s();
+    assert!((-2.0..-0.4).contains(&speed), "{speed}");
+    stage.stop(StopMode::Profiled).unwrap();
+    until_still(&twin);
+    let position = stage.position_mm().unwrap();
+    let motor = Z8Units::default().mm(Z8Units::default().counts(twin.controller().carriage_mm()));
+    assert!(
+        (position - motor).abs() < 0.009,
+        "{position} vs carriage {motor}"
+    );
+}
+
+#[test]
+fn a_silent_truncated_or_unexpected_reply_is_an_error_and_the_motor_stops() {
+    for fault in [Fault::Silent, Fault::Truncated, Fault::Unexpected] {
+        let twin = twin();
+        let mut stage = connect(&twin);
+        stage.set_velocity(2.0).unwrap();
+        std::thread::sleep(Duration::from_millis(600));
+        assert!(twin.controller().speed_mm_s() > 1.9);
+        twin.set_fault(Some(fault));
+        let started = Instant::now();
+        let error = stage.position_mm().unwrap_err();
+        let waited = started.elapsed();
+        match fault {
+            Fault::Silent | Fault::Truncated => {
+                assert!(matches!(error, AptError::Timeout(_)), "{fault:?}: {error}");
+                assert!(waited < Duration::from_millis(400), "{waited:?}");
+            }
+            Fault::Unexpected => {
+                assert!(
+                    matches!(error, AptError::Unexpected(_)),
+                    "{fault:?}: {error}"
+                );
+            }
+        }
+        // The immediate stop went out with the error: no 0.5 s profile.
+        assert!(until_still(&twin) < Duration::from_millis(250), "{fault:?}");
+    }
+}
+
+#[test]
+fn dropping_the_driver_stops_the_motor() {
+    let twin = twin();
+    let mut stage = connect(&twin);
+    stage.set_velocity(-2.0).unwrap();
+    std::thread::sleep(Duration::from_millis(100));
+    drop(stage);
+    assert!(until_still(&twin) < Duration::from_millis(250));
+}
