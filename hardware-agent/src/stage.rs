@@ -43,6 +43,10 @@ pub struct Stage<P: Read + Write> {
     /// The fastest the stage may still be moving, mm/s: the last speed
     /// commanded (a stop takes time, so it stays until the next move).
     last_speed: f64,
+    /// Lost motion on reversal, mm, taken up when the direction changes.
+    backlash_mm: f64,
+    /// The direction of the last move: the side the play was taken up on.
+    direction: Option<Direction>,
 }
 
 /// What a velocity command did.
@@ -70,6 +74,8 @@ impl<P: Read + Write> Stage<P> {
             timeout,
             speed_set: None,
             last_speed: 0.0,
+            backlash_mm: 0.0,
+            direction: None,
         };
         stage.send(Command::RequestInfo)?;
         let Reply::Info(info) = stage.await_reply(|r| matches!(r, Reply::Info(_)))? else {
@@ -88,7 +94,29 @@ impl<P: Read + Write> Stage<P> {
         Ok((stage, info))
     }
 
-    /// The position, mm.
+    /// Mitigates `backlash_mm` of lost motion: the first move, and the first
+    /// after each reversal, is faster by the backlash over one command interval (within
+    /// the speed limit), so the play is taken up within that interval.
+    pub fn with_backlash(mut self, backlash_mm: f64) -> Self {
+        self.backlash_mm = if backlash_mm.is_finite() {
+            backlash_mm.max(0.0)
+        } else {
+            0.0
+        };
+        self
+    }
+
+    /// Where the carriage is, mm: the motor's position less the play after
+    /// a forward move (the motor leads the carriage by the backlash then).
+    pub fn carriage_mm(&mut self) -> Result<f64, AptError> {
+        let motor = self.position_mm()?;
+        Ok(match self.direction {
+            Some(Direction::Forward) => motor - self.backlash_mm,
+            _ => motor,
+        })
+    }
+
+    /// The position counter (the motor's position), mm.
     pub fn position_mm(&mut self) -> Result<f64, AptError> {
         self.send(Command::RequestPosition(CHANNEL))?;
         match self.await_reply(|r| matches!(r, Reply::Position(..)))? {
@@ -111,6 +139,20 @@ impl<P: Read + Write> Stage<P> {
             self.stop(StopMode::Profiled)?;
             return Ok(Commanded::Stopped);
         }
+        let direction = if speed > 0.0 {
+            Direction::Forward
+        } else {
+            Direction::Reverse
+        };
+        // The first move counts as a reversal: which side the play is on is
+        // not known until then.
+        let reversal = self.direction != Some(direction);
+        let speed = if reversal && self.backlash_mm > 0.0 {
+            let boost = self.backlash_mm / self.limits.command_interval_s.max(1e-3);
+            speed.signum() * (speed.abs() + boost).min(self.limits.max_speed_mm_s)
+        } else {
+            speed
+        };
         let position = self.position_mm()?;
         // The stage may still be at the last speed: bound the travel by it.
         let fastest = speed.abs().max(self.last_speed);
@@ -135,13 +177,9 @@ impl<P: Read + Write> Stage<P> {
             self.send(Command::SetVelocity(CHANNEL, params))?;
             self.speed_set = Some(units);
         }
-        let direction = if speed > 0.0 {
-            Direction::Forward
-        } else {
-            Direction::Reverse
-        };
         self.send(Command::MoveVelocity(CHANNEL, direction))?;
         self.last_speed = speed.abs();
+        self.direction = Some(direction);
         Ok(Commanded::Moving(speed))
     }
 

@@ -115,3 +115,53 @@ fn dropping_the_driver_stops_the_motor() {
     drop(stage);
     assert!(until_still(&twin) < Duration::from_millis(250));
 }
+
+#[test]
+fn a_reversal_takes_up_the_backlash_within_one_command_interval() {
+    let twin = twin(); // 8 µm of backlash
+    let limits = StageLimits {
+        command_interval_s: 0.25,
+        ..LIMITS
+    };
+    let port = open_port(twin.path()).unwrap();
+    let (stage, _) =
+        Stage::connect(port, Z8Units::default(), limits, Duration::from_millis(300)).unwrap();
+    let mut stage = stage.with_backlash(0.008);
+    let carriage = || twin.controller().carriage_mm();
+
+    // The first move takes up the play too: which side it is on is unknown.
+    let Commanded::Moving(speed) = stage.set_velocity(0.02).unwrap() else {
+        panic!("refused")
+    };
+    assert!((speed - 0.052).abs() < 1e-9, "{speed}");
+    std::thread::sleep(Duration::from_millis(300));
+    stage.stop(StopMode::Profiled).unwrap();
+    until_still(&twin);
+    let estimate = stage.carriage_mm().unwrap();
+    assert!(
+        (estimate - carriage()).abs() < 0.0005,
+        "{estimate} vs {}",
+        carriage()
+    );
+
+    // Reversing: 0.02 mm/s plus 8 µm over 0.25 s.
+    let before = carriage();
+    let Commanded::Moving(speed) = stage.set_velocity(-0.02).unwrap() else {
+        panic!("refused")
+    };
+    assert!((speed + 0.052).abs() < 1e-9, "{speed}");
+    std::thread::sleep(Duration::from_millis(250));
+    stage.set_velocity(-0.02).unwrap();
+    let after_one = carriage();
+    // Without the boost the carriage would not have moved yet (5 µm of the
+    // 8 µm of play taken up); with it, it has moved.
+    assert!(before - after_one > 0.003, "moved {}", before - after_one);
+    stage.stop(StopMode::Profiled).unwrap();
+    until_still(&twin);
+    let estimate = stage.carriage_mm().unwrap();
+    assert!(
+        (estimate - carriage()).abs() < 0.0005,
+        "{estimate} vs {}",
+        carriage()
+    );
+}
