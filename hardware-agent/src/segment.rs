@@ -215,11 +215,6 @@ impl Segmenter {
         })
     }
 
-    /// The settings in use.
-    pub fn config(&self) -> &SegmentConfig {
-        &self.config
-    }
-
     /// The spheres in `frame`, in raster order of their top edge.
     pub fn segment(&mut self, frame: &GrayFrame) -> Result<Vec<Detection>, SegmentError> {
         let got = [frame.width(), frame.height()];
@@ -289,6 +284,8 @@ impl Segmenter {
         let (w, h) = (self.width, self.height);
         let bin = self.config.bin as f64;
         let scale = bin * bin;
+        // Binned pixel (j, i) spans full-resolution [bin j, bin (j + 1)).
+        let full_resolution = |c: [f64; 2]| [(c[0] + 0.5) * bin, (c[1] + 0.5) * bin];
         let mut found = Vec::new();
         for start in 0..w * h {
             if self.mask[start] != 1 {
@@ -310,7 +307,7 @@ impl Segmenter {
                 if !clipped && area_px >= min && spheres <= self.config.max_merged {
                     for centre in split::split(&self.members, w, &self.deviation, spheres) {
                         found.push(Detection {
-                            centre: [(centre[0] + 0.5) * bin, (centre[1] + 0.5) * bin],
+                            centre: full_resolution(centre),
                             area_px: area_px / spheres as f64,
                             circularity: shape.circularity,
                             clipped,
@@ -326,7 +323,7 @@ impl Segmenter {
                 self.refine(shape.centroid, radius, 2.0 * sigma)
             };
             found.push(Detection {
-                centre: [(centre[0] + 0.5) * bin, (centre[1] + 0.5) * bin],
+                centre: full_resolution(centre),
                 area_px,
                 circularity: shape.circularity,
                 clipped,

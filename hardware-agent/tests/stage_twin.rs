@@ -17,9 +17,13 @@ const LIMITS: StageLimits = StageLimits {
 };
 
 fn connect(twin: &TwinStage) -> Stage<serialport::TTYPort> {
+    connect_within(twin, LIMITS)
+}
+
+fn connect_within(twin: &TwinStage, limits: StageLimits) -> Stage<serialport::TTYPort> {
     let port = open_port(twin.path()).unwrap();
     let (stage, info) =
-        Stage::connect(port, Z8Units::default(), LIMITS, Duration::from_millis(300)).unwrap();
+        Stage::connect(port, Z8Units::default(), limits, Duration::from_millis(300)).unwrap();
     assert_eq!(info.serial, 27_000_001);
     assert_eq!(info.model, "KDC101");
     stage
@@ -123,11 +127,20 @@ fn a_reversal_takes_up_the_backlash_within_one_command_interval() {
         command_interval_s: 0.25,
         ..LIMITS
     };
-    let port = open_port(twin.path()).unwrap();
-    let (stage, _) =
-        Stage::connect(port, Z8Units::default(), limits, Duration::from_millis(300)).unwrap();
-    let mut stage = stage.with_backlash(0.008);
+    let mut stage = connect_within(&twin, limits).with_backlash(0.008);
     let carriage = || twin.controller().carriage_mm();
+    let stop_and_check_the_estimate = |stage: &mut Stage<_>, twin: &TwinStage| {
+        stage.stop(StopMode::Profiled).unwrap();
+        until_still(twin);
+        let (estimate, carriage) = (
+            stage.carriage_mm().unwrap(),
+            twin.controller().carriage_mm(),
+        );
+        assert!(
+            (estimate - carriage).abs() < 0.0005,
+            "{estimate} vs {carriage}"
+        );
+    };
 
     // The first move takes up the play too: which side it is on is unknown.
     let Commanded::Moving(speed) = stage.set_velocity(0.02).unwrap() else {
@@ -135,14 +148,7 @@ fn a_reversal_takes_up_the_backlash_within_one_command_interval() {
     };
     assert!((speed - 0.052).abs() < 1e-9, "{speed}");
     std::thread::sleep(Duration::from_millis(300));
-    stage.stop(StopMode::Profiled).unwrap();
-    until_still(&twin);
-    let estimate = stage.carriage_mm().unwrap();
-    assert!(
-        (estimate - carriage()).abs() < 0.0005,
-        "{estimate} vs {}",
-        carriage()
-    );
+    stop_and_check_the_estimate(&mut stage, &twin);
 
     // Reversing: 0.02 mm/s plus 8 µm over 0.25 s.
     let before = carriage();
@@ -156,12 +162,5 @@ fn a_reversal_takes_up_the_backlash_within_one_command_interval() {
     // Without the boost the carriage would not have moved yet (5 µm of the
     // 8 µm of play taken up); with it, it has moved.
     assert!(before - after_one > 0.003, "moved {}", before - after_one);
-    stage.stop(StopMode::Profiled).unwrap();
-    until_still(&twin);
-    let estimate = stage.carriage_mm().unwrap();
-    assert!(
-        (estimate - carriage()).abs() < 0.0005,
-        "{estimate} vs {}",
-        carriage()
-    );
+    stop_and_check_the_estimate(&mut stage, &twin);
 }

@@ -52,7 +52,7 @@ impl ReplayCamera {
 }
 
 /// Whether `path` names a PNG or TIFF file.
-pub fn is_frame_file(path: &Path) -> bool {
+fn is_frame_file(path: &Path) -> bool {
     path.extension()
         .and_then(|e| e.to_str())
         .is_some_and(|e| ["png", "tif", "tiff"].contains(&e.to_ascii_lowercase().as_str()))

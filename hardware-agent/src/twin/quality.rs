@@ -65,6 +65,10 @@ pub fn detection_quality(
     let (mut spheres, mut found, mut detections, mut true_detections) = (0, 0, 0, 0);
     let (mut errors, mut isolated) = (Vec::new(), Vec::new());
     let mut times = Vec::new();
+    let distance =
+        |a: [f64; 2], b: [f64; 2]| ((a[0] - b[0]).powi(2) + (a[1] - b[1]).powi(2)).sqrt();
+    let inside =
+        |s: &[f64; 2]| s[0] >= radius && s[1] >= radius && s[0] <= w - radius && s[1] <= h - radius;
     for (k, scene) in scenes.iter().enumerate() {
         let mut rng = SplitMix64::derived(seed, k as u64);
         let debris = optics.debris(&mut rng);
@@ -72,8 +76,6 @@ pub fn detection_quality(
         let start = std::time::Instant::now();
         let detected: Vec<Detection> = segmenter.segment(&frame)?;
         times.push(start.elapsed().as_secs_f64() * 1e3);
-        let distance =
-            |a: [f64; 2], b: [f64; 2]| ((a[0] - b[0]).powi(2) + (a[1] - b[1]).powi(2)).sqrt();
         for d in detected.iter().filter(|d| !d.clipped) {
             detections += 1;
             if scene
@@ -83,9 +85,6 @@ pub fn detection_quality(
                 true_detections += 1;
             }
         }
-        let inside = |s: &[f64; 2]| {
-            s[0] >= radius && s[1] >= radius && s[0] <= w - radius && s[1] <= h - radius
-        };
         for s in scene.iter().filter(|s| inside(s)) {
             spheres += 1;
             let nearest = detected
