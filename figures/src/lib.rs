@@ -1,5 +1,6 @@
 //! The paper's pictures: reward curves (Fig. 4) as SVG, episode scenes
-//! (Figs. 5 and 6) as PNG, and the episodes of a policy drawn that way.
+//! (Figs. 5 and 6) and instrument episodes (Figs. 7 and 8) as PNG, and the
+//! episodes of a policy drawn that way.
 
 mod pictures;
 mod rewards;
@@ -7,7 +8,7 @@ mod scenes;
 
 pub use pictures::{Pictures, draw_episodes};
 pub use rewards::{Curve, RewardFigure, reward_figure, rolling_mean};
-pub use scenes::{episode_figure, targets_figure};
+pub use scenes::{FieldEpisode, episode_figure, field_figure, targets_figure};
 
 /// A picture that could not be drawn or written.
 #[derive(Debug, thiserror::Error)]

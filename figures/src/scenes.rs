@@ -18,6 +18,8 @@ const FREE: RGBColor = RGBColor(0, 150, 0);
 const TRAPPED: RGBColor = RGBColor(210, 0, 0);
 const TARGET: RGBColor = RGBColor(0, 70, 230);
 const FOV: RGBColor = RGBColor(40, 40, 40);
+const EXPLORED: RGBColor = RGBColor(170, 170, 170);
+const OBSTACLE: RGBColor = RGBColor(240, 150, 0);
 
 /// The square world region a set of panels shows.
 #[derive(Clone, Copy, Debug)]
@@ -30,21 +32,25 @@ impl View {
     /// The smallest square holding every FOV rectangle, target and path point
     /// of `trajectories`, with a border.
     fn around(trajectories: &[&Trajectory]) -> Self {
+        Self::around_boxes(trajectories.iter().flat_map(|t| {
+            let half_fov = [t.fov_px[0] / 2.0, t.fov_px[1] / 2.0];
+            let ends = [t.trap[0], *t.trap.last().expect("a trajectory has a start")];
+            ends.into_iter()
+                .map(move |p| (p, half_fov))
+                .chain(std::iter::once((t.target, [t.radius; 2])))
+                .chain(t.trap.iter().map(|&p| (p, [t.radius; 2])))
+        }))
+    }
+
+    /// The smallest square holding every box (centre, half size), with a
+    /// border.
+    fn around_boxes(boxes: impl IntoIterator<Item = ([f64; 2], [f64; 2])>) -> Self {
         let mut lo = [f64::INFINITY; 2];
         let mut hi = [f64::NEG_INFINITY; 2];
-        let mut include = |p: [f64; 2], half: [f64; 2]| {
+        for (p, half) in boxes {
             for a in 0..2 {
                 lo[a] = lo[a].min(p[a] - half[a]);
                 hi[a] = hi[a].max(p[a] + half[a]);
-            }
-        };
-        for t in trajectories {
-            let half_fov = [t.fov_px[0] / 2.0, t.fov_px[1] / 2.0];
-            include(t.trap[0], half_fov);
-            include(*t.trap.last().expect("a trajectory has a start"), half_fov);
-            include(t.target, [t.radius; 2]);
-            for &p in &t.trap {
-                include(p, [t.radius; 2]);
             }
         }
         let side = (hi[0] - lo[0]).max(hi[1] - lo[1]) + 2.0 * BORDER_PX;
@@ -113,6 +119,10 @@ impl Painter<'_, '_> {
     }
 
     fn fov(&self, centre: [f64; 2], fov: [f64; 2]) -> Result<(), String> {
+        self.rectangle(centre, fov, FOV)
+    }
+
+    fn rectangle(&self, centre: [f64; 2], fov: [f64; 2], color: RGBColor) -> Result<(), String> {
         let a = self
             .view
             .px([centre[0] - fov[0] / 2.0, centre[1] - fov[1] / 2.0]);
@@ -121,7 +131,7 @@ impl Painter<'_, '_> {
             .px([centre[0] + fov[0] / 2.0, centre[1] + fov[1] / 2.0]);
         Self::result(
             self.panel
-                .draw(&Rectangle::new([a, b], FOV.stroke_width(2))),
+                .draw(&Rectangle::new([a, b], color.stroke_width(2))),
         )
     }
 
@@ -156,15 +166,25 @@ fn three_panels(
     view: View,
     draw: impl Fn(usize, &Painter) -> Result<(), String>,
 ) -> Result<(), FigureError> {
+    panels(path, 3, view, draw)
+}
+
+/// Draws `count` panels side by side into `path`.
+fn panels(
+    path: &Path,
+    count: u32,
+    view: View,
+    draw: impl Fn(usize, &Painter) -> Result<(), String>,
+) -> Result<(), FigureError> {
     let error = |reason: String| FigureError::Draw {
         path: path.display().to_string(),
         reason,
     };
-    let width = 3 * PANEL_PX + 2 * GAP_PX;
+    let width = count * PANEL_PX + (count - 1) * GAP_PX;
     let root = BitMapBackend::new(path, (width, PANEL_PX)).into_drawing_area();
     root.fill(&RGBColor(200, 200, 200))
         .map_err(|e| error(e.to_string()))?;
-    for k in 0..3u32 {
+    for k in 0..count {
         let x0 = (k * (PANEL_PX + GAP_PX)) as i32;
         let panel = root.clone().shrink((x0, 0), (PANEL_PX, PANEL_PX));
         panel.fill(&WHITE).map_err(|e| error(e.to_string()))?;
@@ -240,6 +260,57 @@ pub fn targets_figure(trajectories: &[Trajectory], path: &Path) -> Result<(), Fi
     })
 }
 
+/// An episode on the instrument, in world px, as the paper's Figs. 7 and 8
+/// draw it.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct FieldEpisode {
+    /// Field of view, px.
+    pub fov_px: [f64; 2],
+    /// Sphere radius, px.
+    pub radius: f64,
+    /// The trap at every step.
+    pub path: Vec<[f64; 2]>,
+    /// Snapshots along the way: the trap, and the spheres detected then.
+    pub views: Vec<([f64; 2], Vec<[f64; 2]>)>,
+    /// Virtual obstacles.
+    pub obstacles: Vec<[f64; 2]>,
+    /// The target.
+    pub target: [f64; 2],
+}
+
+/// The paper's Figs. 7 and 8 for one instrument episode: the explored field
+/// (a field-of-view rectangle and the detected spheres at each snapshot),
+/// the virtual obstacles near it, the trap's path and the target.
+pub fn field_figure(episode: &FieldEpisode, path: &Path) -> Result<(), FigureError> {
+    let e = episode;
+    let start = *e.path.first().ok_or(FigureError::Empty)?;
+    let half_fov = [e.fov_px[0] / 2.0, e.fov_px[1] / 2.0];
+    let view = View::around_boxes(
+        e.views
+            .iter()
+            .map(|v| (v.0, half_fov))
+            .chain([(start, half_fov), (e.target, [e.radius; 2])])
+            .chain(e.path.iter().map(|&p| (p, [e.radius; 2]))),
+    );
+    panels(path, 1, view, |_, p| {
+        for &o in &e.obstacles {
+            if view.contains(o, e.radius) {
+                p.circle(o, e.radius, OBSTACLE, true)?;
+            }
+        }
+        for (trap, spheres) in &e.views {
+            p.rectangle(*trap, e.fov_px, EXPLORED)?;
+            for &s in spheres {
+                p.circle(s, e.radius, FREE, false)?;
+            }
+        }
+        p.fov(start, e.fov_px)?;
+        p.circle(e.target, e.radius, TARGET, false)?;
+        p.path(&e.path, TRAPPED, 3)?;
+        p.circle(*e.path.last().expect("non-empty"), e.radius, TRAPPED, true)
+    })
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -270,6 +341,26 @@ mod tests {
             .collect();
         targets_figure(&twelve, &dir.path().join("fig6.png")).unwrap();
         assert!(is_png(&dir.path().join("fig6.png")));
+    }
+
+    #[test]
+    fn draws_an_instrument_episode() {
+        let dir = tempfile::tempdir().unwrap();
+        let file = dir.path().join("field.png");
+        let episode = FieldEpisode {
+            fov_px: [1280.0, 1024.0],
+            radius: 27.0,
+            path: (0..100).map(|k| [10.0 * k as f64, 0.0]).collect(),
+            views: vec![([0.0, 0.0], vec![[100.0, 100.0]]), ([500.0, 0.0], vec![])],
+            obstacles: vec![[500.0, 200.0], [1e6, 0.0]],
+            target: [1000.0, 0.0],
+        };
+        field_figure(&episode, &file).unwrap();
+        assert!(is_png(&file));
+        assert!(matches!(
+            field_figure(&FieldEpisode::default(), &file),
+            Err(FigureError::Empty)
+        ));
     }
 
     #[test]

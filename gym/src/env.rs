@@ -278,13 +278,12 @@ impl Env {
             return Err(EpisodeOver(self.outcome));
         }
         let before = distance(self.trap, self.target);
-        self.t += 1;
         let [ax, ay] = action.components();
         let speed = self.config.stage_speed_px;
-        self.trap[0] += f64::from(ax) * speed;
-        self.trap[1] += f64::from(ay) * speed;
-        self.watch
-            .refresh(&mut self.spheres, &self.motion, self.trap, self.t);
+        self.advance([
+            self.trap[0] + f64::from(ax) * speed,
+            self.trap[1] + f64::from(ay) * speed,
+        ]);
 
         let after = distance(self.trap, self.target);
         let reach = self.config.collision_radius_px;
@@ -336,6 +335,30 @@ impl Env {
             truncated: self.outcome == Outcome::Timeout,
             outcome: self.outcome,
         })
+    }
+
+    /// One step of a world whose stage is driven from outside (the hardware
+    /// agent's digital twin): the free spheres move, the trap goes to `trap`
+    /// (world px), and nothing is scored: whoever drives the stage decides
+    /// how its episode ends. A non-finite `trap` leaves the trap where it
+    /// was. Refused once the time limit has passed, since the lazy
+    /// free-sphere schedule holds only within it.
+    pub fn drive_to(&mut self, trap: [f64; 2]) -> Result<&Observation, EpisodeOver> {
+        if self.t >= self.config.time_limit {
+            return Err(EpisodeOver(Outcome::Timeout));
+        }
+        let finite = trap.iter().all(|v| v.is_finite());
+        self.advance(if finite { trap } else { self.trap });
+        self.observe();
+        Ok(&self.observation)
+    }
+
+    /// Moves time on a step with the trap at `trap`.
+    fn advance(&mut self, trap: [f64; 2]) {
+        self.t += 1;
+        self.trap = trap;
+        self.watch
+            .refresh(&mut self.spheres, &self.motion, self.trap, self.t);
     }
 
     /// The current observation (after a step that ended the episode: its

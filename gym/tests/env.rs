@@ -511,3 +511,37 @@ fn slot_records_chain_into_transitions() {
     }
     assert!(ends >= 4, "{ends} episodes ended");
 }
+
+#[test]
+fn driving_the_trap_from_outside_replays_the_stepped_episode() {
+    let config = EnvConfig::default();
+    let mut stepped = Env::new(config.clone()).unwrap();
+    let mut driven = Env::new(config).unwrap();
+    stepped.reset(9);
+    driven.reset(9);
+    let mut policy = UniformRandom::new(3);
+    for _ in 0..200 {
+        let action = policy.sample();
+        if stepped.step(action).unwrap().done() {
+            break;
+        }
+        let observation = driven.drive_to(stepped.trap()).unwrap();
+        assert_eq!(observation, stepped.observation());
+    }
+    // A non-finite position leaves the trap in place; time still passes.
+    let trap = driven.trap();
+    driven.drive_to([f64::NAN, 0.0]).unwrap();
+    assert_eq!(driven.trap(), trap);
+    let mut short = Env::new(EnvConfig {
+        time_limit: 2,
+        ..EnvConfig::default()
+    })
+    .unwrap();
+    short.reset(1);
+    short.drive_to([0.0, 0.0]).unwrap();
+    short.drive_to([0.0, 0.0]).unwrap();
+    assert_eq!(
+        short.drive_to([0.0, 0.0]).unwrap_err(),
+        EpisodeOver(Outcome::Timeout)
+    );
+}

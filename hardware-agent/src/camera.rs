@@ -8,7 +8,41 @@ mod replay;
 pub use files::{read_frame, write_frame};
 pub use replay::ReplayCamera;
 
+use serde::{Deserialize, Serialize};
 use std::path::PathBuf;
+
+/// Where frames come from.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum CameraSource {
+    /// A directory of frame files, replayed in name order.
+    Replay,
+    /// The digital twin's camera (what `--twin` selects).
+    Twin,
+}
+
+/// The `[camera]` table.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct CameraConfig {
+    /// The backend.
+    pub source: CameraSource,
+    /// The directory of frames (source = "replay").
+    pub dir: PathBuf,
+    /// Whether the replay starts over after the last frame.
+    #[serde(rename = "loop")]
+    pub looping: bool,
+}
+
+impl Default for CameraConfig {
+    fn default() -> Self {
+        Self {
+            source: CameraSource::Twin,
+            dir: PathBuf::from("frames"),
+            looping: false,
+        }
+    }
+}
 
 /// One grayscale camera frame, row-major, x right and y down.
 #[derive(Clone, Debug, PartialEq)]

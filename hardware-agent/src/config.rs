@@ -1,10 +1,17 @@
 //! The hardware agent's configuration file: the environment it shares with
-//! training, segmentation, and the digital twin.
+//! training, segmentation, the stages, the control loop, the policy, the
+//! camera, the overlay, the service, and the digital twin.
 
+use crate::camera::CameraConfig;
+use crate::control::ControlConfig;
+use crate::overlay::OverlayConfig;
+use crate::policy_source::PolicyConfig;
 use crate::segment::SegmentConfig;
-use crate::twin::OpticsConfig;
+use crate::stages::StagesConfig;
+use crate::twin::TwinConfig;
 use serde::{Deserialize, Serialize};
-use std::path::Path;
+use std::net::SocketAddr;
+use std::path::{Path, PathBuf};
 use tweezer_gym::{ConfigError, EnvConfig, read_toml};
 
 /// Everything `hardware-agent` reads from its `--config` file; a missing
@@ -13,20 +20,59 @@ use tweezer_gym::{ConfigError, EnvConfig, read_toml};
 #[serde(default, deny_unknown_fields)]
 pub struct AgentConfig {
     /// The virtual environment the policy was trained in (FOV, sphere size,
-    /// target vector scaling, image resolution).
+    /// target distance and radii, time limit, image resolution).
     pub env: EnvConfig,
     /// Finding spheres in camera frames.
     pub segmentation: SegmentConfig,
+    /// The two stages and their calibration.
+    pub stages: StagesConfig,
+    /// The control loop.
+    pub control: ControlConfig,
+    /// Where the policy comes from.
+    pub policy: PolicyConfig,
+    /// Where frames come from.
+    pub camera: CameraConfig,
+    /// Virtual obstacles (the augmented environment).
+    pub overlay: OverlayConfig,
+    /// The gRPC service.
+    pub service: ServiceConfig,
+    /// Where episode records go.
+    pub records: RecordsConfig,
     /// The digital twin.
     pub twin: TwinConfig,
 }
 
-/// The digital twin of the microscope.
-#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+/// The `[service]` table.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
-pub struct TwinConfig {
-    /// How its camera renders frames.
-    pub optics: OpticsConfig,
+pub struct ServiceConfig {
+    /// Address the gRPC service listens on.
+    pub listen: SocketAddr,
+}
+
+impl Default for ServiceConfig {
+    fn default() -> Self {
+        Self {
+            listen: SocketAddr::from(([127, 0, 0, 1], 50061)),
+        }
+    }
+}
+
+/// The `[records]` table.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct RecordsConfig {
+    /// Directory of episode records (one JSON-lines file and one picture
+    /// per episode).
+    pub dir: PathBuf,
+}
+
+impl Default for RecordsConfig {
+    fn default() -> Self {
+        Self {
+            dir: PathBuf::from("episodes"),
+        }
+    }
 }
 
 impl AgentConfig {
@@ -52,10 +98,16 @@ impl AgentConfig {
         self.segmentation
             .validate()
             .map_err(|e| invalid("segmentation", e.to_string()))?;
-        self.twin
-            .optics
-            .validate()
-            .map_err(|reason| invalid("twin.optics", reason))
+        for (table, check) in [
+            ("stages", self.stages.validate()),
+            ("control", self.control.validate()),
+            ("policy", self.policy.validate()),
+            ("overlay", self.overlay.validate()),
+            ("twin", self.twin.validate()),
+        ] {
+            check.map_err(|reason| invalid(table, reason))?;
+        }
+        Ok(())
     }
 
     /// The configuration as TOML, every default written out.

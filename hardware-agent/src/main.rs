@@ -1,8 +1,9 @@
-//! The hardware-agent daemon's command line. Today: `segment` (sphere
-//! centres in image files, for tuning segmentation on an instrument's own
-//! frames), `bench` and `config`.
+//! The hardware-agent command line: `run` (episodes on the instrument or
+//! its digital twin), `segment` (sphere centres in image files, for tuning
+//! segmentation on an instrument's own frames), `bench` and `config`.
 
 mod bench;
+mod run_episodes;
 mod segment_files;
 
 use clap::{Parser, Subcommand};
@@ -10,13 +11,13 @@ use std::path::PathBuf;
 use tweezer_hardware_agent::config::AgentConfig;
 
 /// Tweezer RL hardware agent: drives the microscope's stages with a trained
-/// policy (the control loop, the twin's stages and the gRPC service are not
-/// built yet).
+/// policy, on the instrument or on its digital twin.
 #[derive(Parser)]
 #[command(version, about)]
 struct Cli {
-    /// TOML config file (`[env]`, `[segmentation]`, `[twin]`); defaults
-    /// otherwise.
+    /// TOML config file (`[env]`, `[segmentation]`, `[stages]`, `[control]`,
+    /// `[policy]`, `[camera]`, `[overlay]`, `[service]`, `[records]`,
+    /// `[twin]`); defaults otherwise.
     #[arg(long = "config", global = true, value_name = "FILE")]
     config: Option<PathBuf>,
     #[command(subcommand)]
@@ -27,6 +28,36 @@ struct Cli {
 enum Command {
     /// Print the effective configuration (the file over defaults) as TOML.
     Config,
+    /// Run episodes, each recorded (JSON lines and a picture) under the
+    /// records directory; prints one JSON line per episode.
+    Run {
+        /// Drive the digital twin (simulated KDC101s on pseudo-terminals
+        /// and a rendered camera) instead of the instrument.
+        #[arg(long)]
+        twin: bool,
+        /// Episodes to run.
+        #[arg(long, default_value_t = 1)]
+        episodes: u64,
+        /// The twin's first episode seed (its spheres and target).
+        #[arg(long, default_value_t = 0)]
+        seed: u64,
+        /// Target relative to the trap, µm along the image axes (required
+        /// on the instrument).
+        #[arg(long, value_name = "DX,DY", value_parser = parse_pair, allow_hyphen_values = true)]
+        target_um: Option<[f64; 2]>,
+        /// Control rate, Hz (overrides `control.rate_hz`).
+        #[arg(long)]
+        rate: Option<f64>,
+        /// Drive with the greedy baseline instead of the configured policy.
+        #[arg(long, conflicts_with = "snapshot")]
+        greedy: bool,
+        /// Drive with this snapshot file instead of the configured policy.
+        #[arg(long, value_name = "FILE")]
+        snapshot: Option<PathBuf>,
+        /// Where records go (overrides `records.dir`).
+        #[arg(long, value_name = "DIR")]
+        records: Option<PathBuf>,
+    },
     /// Find the spheres in PNG or TIFF frames (8 or 16 bits) with the
     /// configured segmentation.
     Segment {
@@ -50,11 +81,52 @@ enum Command {
 
 fn main() -> anyhow::Result<()> {
     let cli = Cli::parse();
-    let config = AgentConfig::load(cli.config.as_deref())?;
+    let mut config = AgentConfig::load(cli.config.as_deref())?;
     match cli.command {
         Command::Config => print!("{}", config.to_toml()),
+        Command::Run {
+            twin,
+            episodes,
+            seed,
+            target_um,
+            rate,
+            greedy,
+            snapshot,
+            records,
+        } => {
+            if let Some(rate) = rate {
+                config.control.rate_hz = rate;
+                config.validate()?;
+            }
+            let args = run_episodes::RunArgs {
+                twin,
+                episodes,
+                seed,
+                target_um,
+                greedy,
+                snapshot,
+                records,
+            };
+            run_episodes::run(&config, args)?;
+        }
         Command::Segment { files, json } => segment_files::run(&config, &files, json)?,
         Command::Bench { frames, json } => bench::run(&config, frames, json)?,
     }
     Ok(())
+}
+
+/// Parses "X,Y" into two finite numbers.
+fn parse_pair(text: &str) -> Result<[f64; 2], String> {
+    let parts: Vec<&str> = text.split(',').collect();
+    let parse = |p: &str| {
+        p.trim()
+            .parse::<f64>()
+            .ok()
+            .filter(|v| v.is_finite())
+            .ok_or_else(|| format!("{p:?} is not a finite number"))
+    };
+    match parts.as_slice() {
+        [x, y] => Ok([parse(x)?, parse(y)?]),
+        _ => Err(format!("{text:?}: expected two numbers, DX,DY")),
+    }
 }

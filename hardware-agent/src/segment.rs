@@ -49,6 +49,9 @@ pub struct SegmentConfig {
     /// than this many spheres, are split into spheres (touching and
     /// overlapping spheres make one blob); larger ones are dropped.
     pub max_merged: usize,
+    /// Radius of a sphere's dark ring, px: merged blobs are split at the
+    /// centres of the darkest rings of this radius.
+    pub ring_radius_px: f64,
 }
 
 impl Default for SegmentConfig {
@@ -66,6 +69,7 @@ impl Default for SegmentConfig {
             max_area_px: 3600.0,
             min_circularity: 0.8,
             max_merged: 4,
+            ring_radius_px: 24.0,
         }
     }
 }
@@ -126,6 +130,7 @@ impl SegmentConfig {
         }
         for (field, value) in [
             ("background_px", self.background_px),
+            ("ring_radius_px", self.ring_radius_px),
             ("upper_sigma", self.upper_sigma),
             ("lower_sigma", self.lower_sigma),
         ] {
@@ -182,6 +187,7 @@ pub struct Segmenter {
     stack: Vec<u32>,
     members: Vec<u32>,
     contour: Contour,
+    rings: split::RingScore,
 }
 
 impl Segmenter {
@@ -211,6 +217,7 @@ impl Segmenter {
             stack: Vec::new(),
             members: Vec::new(),
             contour: Contour::default(),
+            rings: split::RingScore::new(config.ring_radius_px / config.bin as f64),
             config,
         })
     }
@@ -305,7 +312,11 @@ impl Segmenter {
             if !single {
                 let spheres = (area_px / (min * max).sqrt()).round().max(2.0) as usize;
                 if !clipped && area_px >= min && spheres <= self.config.max_merged {
-                    for centre in split::split(&self.members, w, &self.deviation, spheres) {
+                    let ring = self.config.ring_radius_px / bin;
+                    let centres =
+                        self.rings
+                            .split(&self.members, [w, h], &self.deviation, spheres, ring);
+                    for centre in centres {
                         found.push(Detection {
                             centre: full_resolution(centre),
                             area_px: area_px / spheres as f64,

@@ -12,7 +12,7 @@ use std::io::{ErrorKind, Read, Write};
 use std::time::{Duration, Instant};
 
 /// The KDC101's one channel.
-const CHANNEL: Channel = Channel(1);
+pub(crate) const CHANNEL: Channel = Channel(1);
 
 /// What the stage may do.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -43,10 +43,12 @@ pub struct Stage<P: Read + Write> {
     /// The fastest the stage may still be moving, mm/s: the last speed
     /// commanded (a stop takes time, so it stays until the next move).
     last_speed: f64,
-    /// Lost motion on reversal, mm, taken up when the direction changes.
+    /// Lost motion on reversal, mm.
     backlash_mm: f64,
-    /// The direction of the last move: the side the play was taken up on.
-    direction: Option<Direction>,
+    /// Where the carriage is estimated to be, mm: it stays put while the
+    /// motor crosses the play, so it always lies in [motor - backlash,
+    /// motor] (unknown until the first position read).
+    carriage: Option<f64>,
 }
 
 /// What a velocity command did.
@@ -75,7 +77,7 @@ impl<P: Read + Write> Stage<P> {
             speed_set: None,
             last_speed: 0.0,
             backlash_mm: 0.0,
-            direction: None,
+            carriage: None,
         };
         stage.send(Command::RequestInfo)?;
         let Reply::Info(info) = stage.await_reply(|r| matches!(r, Reply::Info(_)))? else {
@@ -94,9 +96,10 @@ impl<P: Read + Write> Stage<P> {
         Ok((stage, info))
     }
 
-    /// Mitigates `backlash_mm` of lost motion: the first move, and the first
-    /// after each reversal, is faster by the backlash over one command interval (within
-    /// the speed limit), so the play is taken up within that interval.
+    /// Mitigates `backlash_mm` of lost motion: while the motor has play to
+    /// cross before the carriage follows (at the first move and after each
+    /// reversal), the move is faster by that play over one command interval
+    /// (within the speed limit), so it is taken up within that interval.
     pub fn with_backlash(mut self, backlash_mm: f64) -> Self {
         self.backlash_mm = if backlash_mm.is_finite() {
             backlash_mm.max(0.0)
@@ -106,14 +109,22 @@ impl<P: Read + Write> Stage<P> {
         self
     }
 
-    /// Where the carriage is, mm: the motor's position less the play after
-    /// a forward move (the motor leads the carriage by the backlash then).
+    /// Where the carriage is, mm: the motor drags it along only once it has
+    /// crossed the play, so the estimate follows the motor within
+    /// [motor - backlash, motor].
     pub fn carriage_mm(&mut self) -> Result<f64, AptError> {
         let motor = self.position_mm()?;
-        Ok(match self.direction {
-            Some(Direction::Forward) => motor - self.backlash_mm,
-            _ => motor,
-        })
+        Ok(self.follow(motor))
+    }
+
+    /// Updates the carriage estimate for the motor at `motor` mm.
+    fn follow(&mut self, motor: f64) -> f64 {
+        let carriage = self
+            .carriage
+            .unwrap_or(motor)
+            .clamp(motor - self.backlash_mm, motor);
+        self.carriage = Some(carriage);
+        carriage
     }
 
     /// The position counter (the motor's position), mm.
@@ -144,16 +155,19 @@ impl<P: Read + Write> Stage<P> {
         } else {
             Direction::Reverse
         };
-        // The first move counts as a reversal: which side the play is on is
-        // not known until then.
-        let reversal = self.direction != Some(direction);
-        let speed = if reversal && self.backlash_mm > 0.0 {
-            let boost = self.backlash_mm / self.limits.command_interval_s.max(1e-3);
+        let position = self.position_mm()?;
+        let carriage = self.follow(position);
+        // The play the motor must cross before the carriage moves this way.
+        let play = match direction {
+            Direction::Forward => carriage + self.backlash_mm - position,
+            Direction::Reverse => position - carriage,
+        };
+        let speed = if play > 1e-9 {
+            let boost = play / self.limits.command_interval_s.max(1e-3);
             speed.signum() * (speed.abs() + boost).min(self.limits.max_speed_mm_s)
         } else {
             speed
         };
-        let position = self.position_mm()?;
         // The stage may still be at the last speed: bound the travel by it.
         let fastest = speed.abs().max(self.last_speed);
         let reach = fastest * self.limits.command_interval_s
@@ -179,7 +193,6 @@ impl<P: Read + Write> Stage<P> {
         }
         self.send(Command::MoveVelocity(CHANNEL, direction))?;
         self.last_speed = speed.abs();
-        self.direction = Some(direction);
         Ok(Commanded::Moving(speed))
     }
 

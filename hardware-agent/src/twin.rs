@@ -1,12 +1,16 @@
 //! The digital twin of the microscope: what the hardware agent drives when
-//! there is no instrument. Its camera renders frames ([`OpticsConfig`]) of
-//! the spheres of a virtual episode, and [`detection_quality`] scores
-//! segmentation against their true centres.
+//! there is no instrument. Two simulated KDC101s on pseudo-terminals
+//! ([`TwinStages`]) move a virtual sample whose frames the twin camera
+//! renders ([`TwinCamera`], [`OpticsConfig`]), so the real driver,
+//! segmentation and control loop run unchanged; [`detection_quality`]
+//! scores segmentation against the true centres.
 
 mod optics;
 mod quality;
 mod stage_server;
+mod world;
 
 pub use optics::{Debris, OpticsConfig};
 pub use quality::{DetectionQuality, MATCH_RADIUS_PX, detection_quality, episode_scene};
 pub use stage_server::{ControllerGuard, Fault, TwinStage};
+pub use world::{TwinCamera, TwinConfig, TwinStages};

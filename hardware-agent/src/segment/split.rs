@@ -1,70 +1,127 @@
-//! Splitting a blob of touching or overlapping spheres: weighted k-means
-//! over its pixels, seeded by farthest points.
+//! Splitting a blob of touching or overlapping spheres. A sphere shows as a
+//! dark ring of known radius, so each pixel of the blob's bounding box is
+//! scored by how dark the image is on a circle of that radius around it
+//! (against circles just inside and outside it); sphere centres
+//! are the strongest peaks of that score, at least most of a radius apart,
+//! refined to sub-pixel by a parabola through each peak's neighbours.
+//! A peak much weaker than the strongest is not a sphere (out-of-focus
+//! debris merged with one, say), so a blob may yield a single centre.
 
-/// Centres (binned px) of `k` spheres in the blob made of the pixels
-/// `members` (indices into rows of `w`), weighted by |`deviation`|.
-pub fn split(members: &[u32], w: usize, deviation: &[f32], k: usize) -> Vec<[f64; 2]> {
-    let points: Vec<([f64; 2], f64)> = members
-        .iter()
-        .map(|&p| {
-            let p = p as usize;
-            (
-                [(p % w) as f64, (p / w) as f64],
-                f64::from(deviation[p].abs()) + 1e-6,
-            )
-        })
-        .collect();
-    let distance2 = |a: [f64; 2], b: [f64; 2]| (a[0] - b[0]).powi(2) + (a[1] - b[1]).powi(2);
-    let total: f64 = points.iter().map(|p| p.1).sum();
-    let mean = [0, 1].map(|axis| points.iter().map(|p| p.0[axis] * p.1).sum::<f64>() / total);
-    let mut centres = vec![mean];
-    while centres.len() <= k {
-        let farthest = points
-            .iter()
-            .map(|p| p.0)
-            .max_by(|&a, &b| {
-                let near = |q| {
-                    centres
-                        .iter()
-                        .map(|&c| distance2(q, c))
-                        .fold(f64::INFINITY, f64::min)
-                };
-                near(a).total_cmp(&near(b))
-            })
-            .expect("a blob has pixels");
-        centres.push(farthest);
-    }
-    centres.remove(0);
-    for _ in 0..20 {
-        let mut sums = vec![[0.0f64; 3]; k];
-        for &(q, weight) in &points {
-            let nearest = (0..k)
-                .min_by(|&a, &b| distance2(q, centres[a]).total_cmp(&distance2(q, centres[b])))
-                .expect("k ≥ 1");
-            sums[nearest][0] += weight * q[0];
-            sums[nearest][1] += weight * q[1];
-            sums[nearest][2] += weight;
+/// Points sampled on the ring.
+const RING_SAMPLES: usize = 48;
+/// Peaks closer than this fraction of the ring radius are one sphere.
+const MIN_SEPARATION: f64 = 0.75;
+/// A peak below this fraction of the strongest is dropped.
+const MIN_RELATIVE_SCORE: f64 = 0.5;
+
+/// Scores candidate centres by how much darker the image is on a circle of
+/// the ring's radius around them than on circles just inside and outside
+/// it: a matched filter for a ring, which a circle around a wrong centre,
+/// crossing the rings of its neighbours, does not fit.
+#[derive(Debug, Clone)]
+pub struct RingScore {
+    /// Offsets on the ring, inside it and outside it.
+    circles: [Vec<(i64, i64)>; 3],
+}
+
+impl RingScore {
+    /// A scorer for rings of `radius` binned px.
+    pub fn new(radius: f64) -> Self {
+        let gap = (radius / 4.0).max(2.0);
+        let circle = |r: f64| {
+            let mut offsets: Vec<(i64, i64)> = (0..RING_SAMPLES)
+                .map(|k| {
+                    let a = std::f64::consts::TAU * k as f64 / RING_SAMPLES as f64;
+                    ((r * a.cos()).round() as i64, (r * a.sin()).round() as i64)
+                })
+                .collect();
+            offsets.dedup();
+            offsets
+        };
+        Self {
+            circles: [circle(radius), circle(radius - gap), circle(radius + gap)],
         }
-        let moved: Vec<[f64; 2]> = sums
-            .iter()
-            .zip(&centres)
-            .map(|(s, &c)| {
-                if s[2] > 0.0 {
-                    [s[0] / s[2], s[1] / s[2]]
-                } else {
-                    c
+    }
+
+    /// How much darker the ring around (x, y) is than its surroundings
+    /// (samples off the image are skipped).
+    fn at(&self, x: i64, y: i64, w: usize, h: usize, deviation: &[f32]) -> f64 {
+        let mean = |offsets: &[(i64, i64)]| {
+            let (mut sum, mut n) = (0.0f64, 0usize);
+            for &(dx, dy) in offsets {
+                let (sx, sy) = (x + dx, y + dy);
+                if sx >= 0 && sy >= 0 && (sx as usize) < w && (sy as usize) < h {
+                    sum += f64::from(deviation[sy as usize * w + sx as usize]);
+                    n += 1;
                 }
-            })
-            .collect();
-        let shift = moved
-            .iter()
-            .zip(&centres)
-            .map(|(&a, &b)| distance2(a, b))
-            .fold(0.0, f64::max);
-        centres = moved;
-        if shift < 1e-6 {
-            break;
-        }
+            }
+            if n == 0 { 0.0 } else { sum / n as f64 }
+        };
+        let [ring, inside, outside] = &self.circles;
+        0.5 * (mean(inside) + mean(outside)) - mean(ring)
     }
-    centres
+
+    /// Centres (binned px) of at most `k` spheres in the blob made of the
+    /// pixels `members` (indices into rows of `w`) of an image `h` rows
+    /// high, whose rings have the scorer's radius. Every pixel of the
+    /// blob's bounding box is a candidate: a ring's centre may lie in a
+    /// hole of its blob.
+    pub fn split(
+        &self,
+        members: &[u32],
+        [w, h]: [usize; 2],
+        deviation: &[f32],
+        k: usize,
+        radius: f64,
+    ) -> Vec<[f64; 2]> {
+        let (mut lo, mut hi) = ([i64::MAX; 2], [i64::MIN; 2]);
+        for &p in members {
+            let q = [(p as usize % w) as i64, (p as usize / w) as i64];
+            for a in 0..2 {
+                lo[a] = lo[a].min(q[a]);
+                hi[a] = hi[a].max(q[a]);
+            }
+        }
+        let mut scored: Vec<(f64, i64, i64)> = (lo[1]..=hi[1])
+            .flat_map(|y| (lo[0]..=hi[0]).map(move |x| (x, y)))
+            .map(|(x, y)| (self.at(x, y, w, h, deviation), x, y))
+            .collect();
+        scored.sort_by(|a, b| b.0.total_cmp(&a.0));
+        let Some(&(best, ..)) = scored.first() else {
+            return Vec::new();
+        };
+        let separation2 = (MIN_SEPARATION * radius).powi(2);
+        let mut peaks: Vec<(i64, i64)> = Vec::with_capacity(k);
+        for &(score, x, y) in &scored {
+            if peaks.len() == k || score < MIN_RELATIVE_SCORE * best || score <= 0.0 {
+                break;
+            }
+            let apart = peaks.iter().all(|&(px, py)| {
+                let (dx, dy) = ((x - px) as f64, (y - py) as f64);
+                dx * dx + dy * dy >= separation2
+            });
+            if apart {
+                peaks.push((x, y));
+            }
+        }
+        peaks
+            .into_iter()
+            .map(|(x, y)| {
+                let s = |dx: i64, dy: i64| self.at(x + dx, y + dy, w, h, deviation);
+                let centre = s(0, 0);
+                let vertex = |minus: f64, plus: f64| {
+                    let curvature = minus - 2.0 * centre + plus;
+                    if curvature < 0.0 {
+                        (0.5 * (minus - plus) / curvature).clamp(-0.5, 0.5)
+                    } else {
+                        0.0
+                    }
+                };
+                [
+                    x as f64 + vertex(s(-1, 0), s(1, 0)),
+                    y as f64 + vertex(s(0, -1), s(0, 1)),
+                ]
+            })
+            .collect()
+    }
 }

@@ -1,0 +1,302 @@
+//! The instrument as the loop drives it: camera, segmentation, stages,
+//! overlay and watchdog, and the episode loop over them.
+
+use super::{ControlConfig, Ending, EpisodeSummary, Halt, HaltKind, LoopTiming, StepLog, Watchdog};
+use crate::apt::StopMode;
+use crate::camera::Camera;
+use crate::overlay::Overlay;
+use crate::segment::{Detection, SegmentError, Segmenter};
+use crate::stages::{StagePair, Stopper};
+use std::io::{Read, Write};
+use std::time::{Duration, Instant};
+use tweezer_gym::{Action, EnvConfig, Observation, ObservationBounds, Policy};
+
+/// A rig that cannot be assembled.
+#[derive(Debug, thiserror::Error)]
+pub enum RigError {
+    /// The camera's frames do not show the environment's field of view.
+    #[error("the camera gives {camera:?} px frames; env.fov_px is {fov:?}")]
+    FrameSize {
+        /// The camera's frame size.
+        camera: [usize; 2],
+        /// The policy's field of view.
+        fov: [u32; 2],
+    },
+    /// Bad segmentation settings.
+    #[error(transparent)]
+    Segment(#[from] SegmentError),
+    /// A bad `[control]` table.
+    #[error("{0}")]
+    Control(String),
+    /// The watchdog thread could not start.
+    #[error("cannot start the watchdog: {0}")]
+    Watchdog(std::io::Error),
+}
+
+/// Camera, stages and everything between them.
+#[derive(Debug)]
+pub struct Rig<C, P: Read + Write> {
+    camera: C,
+    stages: StagePair<P>,
+    segmenter: Segmenter,
+    env: EnvConfig,
+    control: ControlConfig,
+    overlay: Overlay,
+    watchdog: Watchdog,
+    bounds: ObservationBounds,
+}
+
+impl<C: Camera, P: Read + Write + Send + 'static> Rig<C, P> {
+    /// Assembles a rig; the camera must show the environment's FOV.
+    pub fn new(
+        camera: C,
+        stages: StagePair<P>,
+        segmenter: Segmenter,
+        env: EnvConfig,
+        control: ControlConfig,
+        overlay: Overlay,
+    ) -> Result<Self, RigError> {
+        control.validate().map_err(RigError::Control)?;
+        let fov = env.fov_px;
+        if camera.size() != fov.map(|v| v as usize) {
+            return Err(RigError::FrameSize {
+                camera: camera.size(),
+                fov,
+            });
+        }
+        let watchdog = Watchdog::spawn(stages.stopper()).map_err(RigError::Watchdog)?;
+        Ok(Self {
+            camera,
+            bounds: ObservationBounds::for_config(&env),
+            stages,
+            segmenter,
+            env,
+            control,
+            overlay,
+            watchdog,
+        })
+    }
+
+    /// The camera.
+    pub fn camera(&mut self) -> &mut C {
+        &mut self.camera
+    }
+
+    /// The stages.
+    pub fn stages(&mut self) -> &mut StagePair<P> {
+        &mut self.stages
+    }
+
+    /// Stops both motors from any thread.
+    pub fn stopper(&self) -> Stopper<P> {
+        self.stages.stopper()
+    }
+
+    /// Replaces the virtual obstacles (between episodes).
+    pub fn set_overlay(&mut self, overlay: Overlay) {
+        self.overlay = overlay;
+    }
+
+    /// Runs one episode toward `target_offset_px` (image axes, from the
+    /// trap's position now) with `policy`, until it ends or `halt` asks;
+    /// `on_step` sees every step. The stages are stopped when it returns.
+    pub fn run_episode(
+        &mut self,
+        policy: &mut dyn Policy,
+        target_offset_px: [f64; 2],
+        halt: &Halt,
+        mut on_step: impl FnMut(&StepLog),
+    ) -> EpisodeSummary {
+        let started = Instant::now();
+        let mut progress = Progress::default();
+        let ending = match self.stages.position_px() {
+            Ok(start_px) => {
+                progress.start_px = start_px;
+                progress.end_px = start_px;
+                progress.target_px = [
+                    start_px[0] + target_offset_px[0],
+                    start_px[1] + target_offset_px[1],
+                ];
+                self.drive(policy, halt, &mut on_step, &mut progress)
+            }
+            Err(e) => Ending::Fault(e.to_string()),
+        };
+        self.watchdog.disarm();
+        let _ = self.watchdog.take_tripped();
+        let mode = match ending {
+            Ending::Success | Ending::Stopped | Ending::Timeout => StopMode::Profiled,
+            _ => StopMode::Immediate,
+        };
+        if self.stages.stop(mode).is_err() {
+            // Whatever failed, the motors get the stop by the other path too.
+            let _ = self.stages.stopper().stop_now();
+        }
+        let duration_s = started.elapsed().as_secs_f64();
+        EpisodeSummary {
+            timing: LoopTiming::of(&mut progress.latencies, duration_s, progress.steps),
+            ending,
+            steps: progress.steps,
+            duration_s,
+            start_px: progress.start_px,
+            target_px: progress.target_px,
+            end_px: progress.end_px,
+        }
+    }
+
+    fn drive(
+        &mut self,
+        policy: &mut dyn Policy,
+        halt: &Halt,
+        on_step: &mut impl FnMut(&StepLog),
+        progress: &mut Progress,
+    ) -> Ending {
+        let (start_px, target_px) = (progress.start_px, progress.target_px);
+        let period = Duration::from_secs_f64(self.control.period_s());
+        let margin = Duration::from_secs_f64(self.control.deadline_margin_ms / 1000.0);
+        let speed = self.control.px_per_step * self.control.rate_hz;
+        let [fw, fh] = self.env.fov_px.map(f64::from);
+        let centre = [fw / 2.0, fh / 2.0];
+        let initial = (target_px[0] - start_px[0])
+            .hypot(target_px[1] - start_px[1])
+            .max(f64::MIN_POSITIVE);
+        let radius = self.env.sphere_radius_px();
+        let started = Instant::now();
+        let mut next = started;
+        let mut lost = 0;
+        let mut observation = Observation::default();
+        let mut action = [Action::ZERO];
+        loop {
+            match halt.wait_until(next) {
+                Some(HaltKind::Stop) => return Ending::Stopped,
+                Some(HaltKind::Emergency(reason)) => return Ending::EmergencyStopped(reason),
+                None => {}
+            }
+            let tick = Instant::now();
+            if self.watchdog.take_tripped() {
+                return Ending::Fault("the watchdog stopped the stages: the loop stalled".into());
+            }
+            if tick > next + margin {
+                return Ending::Fault(format!(
+                    "step {} started {:.0} ms late, beyond the {:.0} ms margin",
+                    progress.steps,
+                    (tick - next).as_secs_f64() * 1000.0,
+                    margin.as_secs_f64() * 1000.0
+                ));
+            }
+            self.watchdog.arm(tick + period + margin);
+            let frame = match self.camera.grab() {
+                Ok(frame) => frame,
+                Err(e) => return Ending::Fault(format!("camera: {e}")),
+            };
+            let frame_in = Instant::now();
+            let detections = match self.segmenter.segment(&frame) {
+                Ok(d) => d,
+                Err(e) => return Ending::Fault(format!("segmentation: {e}")),
+            };
+            let stage_mm = match self.stages.position_mm() {
+                Ok(mm) => mm,
+                Err(e) => return Ending::Fault(e.to_string()),
+            };
+            let position = self.stages.px(stage_mm);
+            progress.end_px = position;
+            let trapped = trapped_sphere(&detections, centre, self.control.trap_search_px);
+            observation.centres.clear();
+            observation.centres.extend(
+                detections
+                    .iter()
+                    .enumerate()
+                    .filter(|&(k, _)| Some(k) != trapped)
+                    .map(|(_, d)| d.centre.map(|v| v as f32)),
+            );
+            let detected = observation.centres.len();
+            self.overlay
+                .visible(position, [fw, fh], radius, &mut observation.centres);
+            let remaining = [target_px[0] - position[0], target_px[1] - position[1]];
+            // Scored as the virtual environment scores a step: collision
+            // (with a free sphere or a virtual obstacle) first, then
+            // success, then the time limit.
+            if progress.steps > 0 {
+                let reach = self.env.collision_radius_px;
+                let hit = observation.centres.iter().any(|c| {
+                    (f64::from(c[0]) - centre[0]).hypot(f64::from(c[1]) - centre[1]) <= reach
+                });
+                if hit && trapped.is_some() {
+                    return Ending::Collision;
+                }
+                if remaining[0].hypot(remaining[1]) <= self.env.success_radius_px {
+                    return Ending::Success;
+                }
+                if progress.steps >= self.env.time_limit {
+                    return Ending::Timeout;
+                }
+            }
+            let Some(trapped) = trapped else {
+                lost += 1;
+                if lost >= self.control.lost_trap_frames {
+                    return Ending::TrapLost;
+                }
+                if let Err(e) = self.stages.set_velocity_px([0.0; 2]) {
+                    return Ending::Fault(e.to_string());
+                }
+                next += period;
+                continue;
+            };
+            lost = 0;
+            let mut vector = remaining.map(|v| v / initial);
+            let magnitude = vector[0].hypot(vector[1]);
+            if magnitude > 1.0 {
+                vector = vector.map(|v| v / magnitude);
+            }
+            observation.vector = vector.map(|v| v as f32);
+            if let Err(e) = observation.validate(&self.bounds) {
+                return Ending::Fault(format!("observation: {e}"));
+            }
+            let thinking = Instant::now();
+            policy.act(&[&observation], &mut action);
+            let policy_ms = thinking.elapsed().as_secs_f64() * 1000.0;
+            let [ax, ay] = action[0].components();
+            let velocity = [f64::from(ax) * speed, f64::from(ay) * speed];
+            if let Err(e) = self.stages.set_velocity_px(velocity) {
+                return Ending::Fault(e.to_string());
+            }
+            let latency_ms = frame_in.elapsed().as_secs_f64() * 1000.0;
+            progress.latencies.push(latency_ms);
+            on_step(&StepLog {
+                step: progress.steps,
+                time_s: (tick - started).as_secs_f64(),
+                centres: observation.centres.clone(),
+                detected,
+                trapped: detections[trapped].centre.map(|v| v as f32),
+                vector: observation.vector,
+                action: [ax, ay],
+                position_px: position,
+                stage_mm,
+                latency_ms,
+                policy_ms,
+            });
+            progress.steps += 1;
+            next += period;
+        }
+    }
+}
+
+/// Where an episode has got to.
+#[derive(Debug, Default)]
+struct Progress {
+    start_px: [f64; 2],
+    target_px: [f64; 2],
+    end_px: [f64; 2],
+    steps: u32,
+    latencies: Vec<f64>,
+}
+
+/// The detection nearest `centre` within `search` px: the trapped sphere.
+fn trapped_sphere(detections: &[Detection], centre: [f64; 2], search: f64) -> Option<usize> {
+    detections
+        .iter()
+        .enumerate()
+        .map(|(k, d)| (k, (d.centre[0] - centre[0]).hypot(d.centre[1] - centre[1])))
+        .filter(|&(_, r)| r <= search)
+        .min_by(|a, b| a.1.total_cmp(&b.1))
+        .map(|(k, _)| k)
+}

@@ -1,0 +1,233 @@
+//! The instrument assembled from the configuration: the real stages and the
+//! configured camera, or the digital twin's stages and camera, in a rig
+//! with the overlay; and one recorded episode on it.
+
+use crate::camera::{Camera, CameraError, CameraSource, GrayFrame, ReplayCamera};
+use crate::config::AgentConfig;
+use crate::control::{EpisodeSummary, Halt, Rig, StepLog};
+use crate::overlay::{Overlay, OverlaySpec};
+use crate::policy_source::LoadedPolicy;
+use crate::record::{EpisodeHeader, EpisodeRecorder, RecordFiles};
+use crate::segment::Segmenter;
+use crate::stages::StagePair;
+use crate::twin::{TwinCamera, TwinStages};
+use serde::Serialize;
+use serialport::TTYPort;
+use std::path::Path;
+use std::sync::Arc;
+
+/// The camera an instrument was built with.
+#[derive(Debug)]
+pub enum InstrumentCamera {
+    /// Frames replayed from a directory.
+    Replay(ReplayCamera),
+    /// The digital twin's camera.
+    Twin(Box<TwinCamera>),
+}
+
+impl Camera for InstrumentCamera {
+    fn size(&self) -> [usize; 2] {
+        match self {
+            Self::Replay(c) => c.size(),
+            Self::Twin(c) => c.size(),
+        }
+    }
+
+    fn grab(&mut self) -> Result<GrayFrame, CameraError> {
+        match self {
+            Self::Replay(c) => c.grab(),
+            Self::Twin(c) => c.grab(),
+        }
+    }
+}
+
+/// What truly happened in a twin episode, to judge the agent's view by.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize)]
+pub struct TwinTruth {
+    /// A free sphere entered the trap region.
+    pub collided: bool,
+    /// The trap truly ended within the success radius of the target.
+    pub reached: bool,
+    /// Distance between the trap's true end position and the agent's
+    /// estimate from the stage positions, px.
+    pub position_error_px: f64,
+}
+
+/// An instrument that cannot be assembled.
+#[derive(Debug, thiserror::Error)]
+#[error("{0}")]
+pub struct InstrumentError(String);
+
+fn fail(what: &str) -> impl Fn(&dyn std::fmt::Display) -> InstrumentError + '_ {
+    move |e| InstrumentError(format!("{what}: {e}"))
+}
+
+/// Stages, camera and loop, ready for episodes.
+#[derive(Debug)]
+pub struct Instrument {
+    rig: Rig<InstrumentCamera, TTYPort>,
+    overlay: Overlay,
+    /// The twin's stages, when this is the twin (they live as long as the
+    /// instrument).
+    twin: Option<Arc<TwinStages>>,
+    config: AgentConfig,
+}
+
+impl Instrument {
+    /// Connects to the configured stages and camera, or with `twin` to a
+    /// freshly started digital twin.
+    pub fn open(config: &AgentConfig, twin: bool) -> Result<Self, InstrumentError> {
+        let command_interval = config.control.command_interval();
+        let (stages, camera, twin) = if twin {
+            let twin = Arc::new(
+                TwinStages::spawn(&config.twin).map_err(|e| fail("cannot start the twin")(&e))?,
+            );
+            let (stages, _) = StagePair::open_paths(twin.ports(), &config.stages, command_interval)
+                .map_err(|e| fail("twin stages")(&e))?;
+            let camera = TwinCamera::new(
+                twin.clone(),
+                &config.env,
+                config.twin.optics.clone(),
+                config.stages.calibration(),
+            )
+            .map_err(|e| fail("twin camera")(&e))?;
+            (stages, InstrumentCamera::Twin(Box::new(camera)), Some(twin))
+        } else {
+            let camera = match config.camera.source {
+                CameraSource::Replay => InstrumentCamera::Replay(
+                    ReplayCamera::open(&config.camera.dir, config.camera.looping)
+                        .map_err(|e| fail("camera")(&e))?,
+                ),
+                CameraSource::Twin => {
+                    return Err(InstrumentError(
+                        "camera.source = \"twin\" needs the twin's stages too: run with --twin"
+                            .into(),
+                    ));
+                }
+            };
+            let (stages, _) = StagePair::open(&config.stages, command_interval)
+                .map_err(|e| fail("stages")(&e))?;
+            (stages, camera, None)
+        };
+        let overlay = Self::overlay(config, stages.travel_px())?;
+        let segmenter = Segmenter::new(config.segmentation.clone(), camera.size())
+            .map_err(|e| fail("segmentation")(&e))?;
+        let rig = Rig::new(
+            camera,
+            stages,
+            segmenter,
+            config.env.clone(),
+            config.control.clone(),
+            overlay.clone(),
+        )
+        .map_err(|e| fail("rig")(&e))?;
+        Ok(Self {
+            rig,
+            overlay,
+            twin,
+            config: config.clone(),
+        })
+    }
+
+    /// The configured overlay file's obstacles and the keep-out walls.
+    fn overlay(config: &AgentConfig, travel: [[f64; 2]; 2]) -> Result<Overlay, InstrumentError> {
+        let spec = match &config.overlay.file {
+            Some(path) => OverlaySpec::from_file(path).map_err(|e| fail("overlay")(&e))?,
+            None => OverlaySpec::default(),
+        };
+        Self::build_overlay(config, &spec, travel)
+    }
+
+    fn build_overlay(
+        config: &AgentConfig,
+        spec: &OverlaySpec,
+        travel: [[f64; 2]; 2],
+    ) -> Result<Overlay, InstrumentError> {
+        let px_per_um = config.stages.px_per_um;
+        let overlay = Overlay::new(spec, px_per_um, config.env.sphere_radius_px())
+            .map_err(|e| fail("overlay")(&e))?;
+        Ok(if config.overlay.keep_out_um > 0.0 {
+            overlay.with_keep_out(travel, config.overlay.keep_out_um * px_per_um)
+        } else {
+            overlay
+        })
+    }
+
+    /// Replaces the virtual obstacles (between episodes).
+    pub fn set_overlay(&mut self, spec: &OverlaySpec) -> Result<(), InstrumentError> {
+        let travel = self.rig.stages().travel_px();
+        let overlay = Self::build_overlay(&self.config, spec, travel)?;
+        self.rig.set_overlay(overlay.clone());
+        self.overlay = overlay;
+        Ok(())
+    }
+
+    /// The rig.
+    pub fn rig(&mut self) -> &mut Rig<InstrumentCamera, TTYPort> {
+        &mut self.rig
+    }
+
+    /// The twin's stages, if this is the twin.
+    pub fn twin(&self) -> Option<&Arc<TwinStages>> {
+        self.twin.as_ref()
+    }
+
+    /// Lays out twin episode `seed` around the trap; its target relative to
+    /// the trap, px (`None` unless this is the twin).
+    pub fn start_twin_episode(&mut self, seed: u64) -> Option<[f64; 2]> {
+        match self.rig.camera() {
+            InstrumentCamera::Twin(camera) => Some(camera.start_episode(seed)),
+            InstrumentCamera::Replay(_) => None,
+        }
+    }
+
+    /// What truly happened in the twin's episode that `summary` describes
+    /// (`None` unless this is the twin).
+    pub fn twin_truth(&mut self, summary: &EpisodeSummary) -> Option<TwinTruth> {
+        let InstrumentCamera::Twin(camera) = self.rig.camera() else {
+            return None;
+        };
+        let offset = camera.trap_offset_px();
+        let estimate = [
+            summary.end_px[0] - summary.start_px[0],
+            summary.end_px[1] - summary.start_px[1],
+        ];
+        let to_target = [
+            summary.target_px[0] - summary.start_px[0] - offset[0],
+            summary.target_px[1] - summary.start_px[1] - offset[1],
+        ];
+        Some(TwinTruth {
+            collided: camera.collided(),
+            reached: to_target[0].hypot(to_target[1]) <= self.config.env.success_radius_px,
+            position_error_px: (offset[0] - estimate[0]).hypot(offset[1] - estimate[1]),
+        })
+    }
+
+    /// Runs and records one episode toward `header.target_offset_px`.
+    pub fn run_recorded(
+        &mut self,
+        policy: &mut LoadedPolicy,
+        header: &EpisodeHeader,
+        records: &Path,
+        halt: &Halt,
+        mut on_step: impl FnMut(&StepLog),
+    ) -> Result<(EpisodeSummary, RecordFiles), InstrumentError> {
+        let fov = self.config.env.fov_px.map(f64::from);
+        let radius = self.config.env.sphere_radius_px();
+        let mut recorder = EpisodeRecorder::create(records, header, fov, radius)
+            .map_err(|e| fail("records")(&e))?;
+        let summary = self.rig.run_episode(
+            policy.policy.as_mut(),
+            header.target_offset_px,
+            halt,
+            |log| {
+                recorder.step(log);
+                on_step(log);
+            },
+        );
+        let files = recorder
+            .finish(&summary, self.overlay.discs())
+            .map_err(|e| fail("records")(&e))?;
+        Ok((summary, files))
+    }
+}

@@ -1,0 +1,246 @@
+//! Where the agent's policy comes from: a learner over gRPC (its best,
+//! latest or a pinned snapshot), a snapshot file, or the greedy baseline.
+//! Every snapshot is verified before use: its checksum, architecture and
+//! image resolution must match what this agent renders.
+
+use burn::tensor::Device;
+use serde::{Deserialize, Serialize};
+use std::path::{Path, PathBuf};
+use std::time::Duration;
+use tweezer_gym::{EnvConfig, Greedy, Policy, Renderer};
+use tweezer_nets::{NetworkPolicy, SnapshotInfo, file_sha256};
+use tweezer_proto::pb::learner_client::LearnerClient;
+use tweezer_proto::pb::snapshot_request::Selector;
+use tweezer_proto::{download_snapshot, pb};
+
+/// What kind of source.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum PolicyKind {
+    /// A learner's snapshot over gRPC.
+    Learner,
+    /// A snapshot file.
+    File,
+    /// Straight at the target, blind to spheres (needs no training).
+    Greedy,
+}
+
+/// The `[policy]` table.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct PolicyConfig {
+    /// Where the policy comes from.
+    pub source: PolicyKind,
+    /// The learner's gRPC address (source = "learner").
+    pub learner: String,
+    /// Which of its snapshots: "best", "latest" or a version number.
+    pub snapshot: String,
+    /// The snapshot file (source = "file").
+    pub file: PathBuf,
+    /// Longest wait for the learner, s.
+    pub timeout_s: f64,
+}
+
+impl Default for PolicyConfig {
+    fn default() -> Self {
+        Self {
+            source: PolicyKind::Learner,
+            learner: "http://127.0.0.1:50051".into(),
+            snapshot: "best".into(),
+            file: PathBuf::from("snapshot.safetensors"),
+            timeout_s: 30.0,
+        }
+    }
+}
+
+/// A learner's snapshot, by tag or version.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum SnapshotChoice {
+    /// The one with the best rolling return.
+    Best,
+    /// The newest.
+    Latest,
+    /// This version.
+    Version(u64),
+}
+
+impl SnapshotChoice {
+    /// Parses "best", "latest" or a version number.
+    pub fn parse(text: &str) -> Result<Self, String> {
+        match text {
+            "best" => Ok(Self::Best),
+            "latest" => Ok(Self::Latest),
+            v => v.parse().map(Self::Version).map_err(|_| {
+                format!("policy.snapshot = {v:?}: \"best\", \"latest\" or a version number")
+            }),
+        }
+    }
+
+    fn selector(self) -> Selector {
+        match self {
+            Self::Best => Selector::Tag(pb::SnapshotTag::Best.into()),
+            Self::Latest => Selector::Tag(pb::SnapshotTag::Latest.into()),
+            Self::Version(v) => Selector::Version(v),
+        }
+    }
+}
+
+impl PolicyConfig {
+    /// Checks the fields the source uses.
+    pub fn validate(&self) -> Result<(), String> {
+        SnapshotChoice::parse(&self.snapshot)?;
+        if !(self.timeout_s.is_finite() && (0.1..=3600.0).contains(&self.timeout_s)) {
+            return Err(format!(
+                "policy.timeout_s = {}: must lie in [0.1, 3600]",
+                self.timeout_s
+            ));
+        }
+        if self.source == PolicyKind::Learner
+            && self.learner.parse::<tonic::transport::Uri>().is_err()
+        {
+            return Err(format!("policy.learner = {:?} is not a URI", self.learner));
+        }
+        Ok(())
+    }
+}
+
+/// A policy the agent can drive with, and what it is.
+pub struct LoadedPolicy {
+    /// The policy.
+    pub policy: Box<dyn Policy + Send>,
+    /// Snapshot version (0 for the greedy baseline).
+    pub version: u64,
+    /// Where it came from, for status and records.
+    pub description: String,
+}
+
+impl std::fmt::Debug for LoadedPolicy {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("LoadedPolicy")
+            .field("version", &self.version)
+            .field("description", &self.description)
+            .finish_non_exhaustive()
+    }
+}
+
+/// Why no policy could be loaded.
+#[derive(Debug, thiserror::Error)]
+pub enum PolicyError {
+    /// A bad `[policy]` table or `[env]` image settings.
+    #[error("{0}")]
+    Config(String),
+    /// The learner could not be reached or refused.
+    #[error("cannot fetch snapshot {choice:?} from the learner at {address}: {reason}")]
+    Learner {
+        /// Its address.
+        address: String,
+        /// Which snapshot.
+        choice: SnapshotChoice,
+        /// Why.
+        reason: String,
+    },
+    /// The snapshot failed verification or could not be read.
+    #[error("refusing the policy: {0}")]
+    Refused(String),
+}
+
+impl LoadedPolicy {
+    /// The greedy baseline.
+    pub fn greedy() -> Self {
+        Self {
+            policy: Box::new(Greedy),
+            version: 0,
+            description: "greedy baseline".into(),
+        }
+    }
+
+    /// Loads the policy `config` names, for observations of `env`.
+    pub fn load(config: &PolicyConfig, env: &EnvConfig) -> Result<Self, PolicyError> {
+        config.validate().map_err(PolicyError::Config)?;
+        match config.source {
+            PolicyKind::Greedy => Ok(Self::greedy()),
+            PolicyKind::File => Self::from_file(&config.file, env),
+            PolicyKind::Learner => {
+                let choice =
+                    SnapshotChoice::parse(&config.snapshot).map_err(PolicyError::Config)?;
+                let timeout = Duration::from_secs_f64(config.timeout_s);
+                Self::from_learner(&config.learner, choice, timeout, env)
+            }
+        }
+    }
+
+    /// Loads and verifies a snapshot file.
+    pub fn from_file(path: &Path, env: &EnvConfig) -> Result<Self, PolicyError> {
+        let bytes = std::fs::read(path).map_err(|e| {
+            PolicyError::Refused(format!("cannot read snapshot {}: {e}", path.display()))
+        })?;
+        Self::from_bytes(&bytes, env, &format!("file {}", path.display()))
+    }
+
+    /// Downloads, verifies and loads a learner's snapshot.
+    pub fn from_learner(
+        address: &str,
+        choice: SnapshotChoice,
+        timeout: Duration,
+        env: &EnvConfig,
+    ) -> Result<Self, PolicyError> {
+        let fail = |reason: String| PolicyError::Learner {
+            address: address.into(),
+            choice,
+            reason,
+        };
+        let runtime = tokio::runtime::Builder::new_current_thread()
+            .enable_all()
+            .build()
+            .map_err(|e| fail(e.to_string()))?;
+        let (info, bytes) = runtime.block_on(async {
+            let endpoint = tonic::transport::Endpoint::from_shared(address.to_string())
+                .map_err(|e| fail(e.to_string()))?
+                .connect_timeout(timeout)
+                .timeout(timeout);
+            let channel = endpoint.connect().await.map_err(|e| fail(e.to_string()))?;
+            let mut client = LearnerClient::new(channel).max_decoding_message_size(64 << 20);
+            download_snapshot(&mut client, choice.selector())
+                .await
+                .map_err(|e| fail(e.to_string()))
+        })?;
+        let renderer = Renderer::for_config(env).map_err(|e| PolicyError::Config(e.to_string()))?;
+        if info.architecture != tweezer_nets::ARCHITECTURE
+            || info.image_width as usize != renderer.width()
+            || info.image_height as usize != renderer.height()
+        {
+            return Err(PolicyError::Refused(format!(
+                "the learner's snapshot v{} is a {} network for {}x{} images; this agent runs {} on {}x{}",
+                info.version,
+                info.architecture,
+                info.image_width,
+                info.image_height,
+                tweezer_nets::ARCHITECTURE,
+                renderer.width(),
+                renderer.height()
+            )));
+        }
+        Self::from_bytes(
+            &bytes,
+            env,
+            &format!("learner {address} snapshot v{}", info.version),
+        )
+    }
+
+    fn from_bytes(bytes: &[u8], env: &EnvConfig, origin: &str) -> Result<Self, PolicyError> {
+        let renderer = Renderer::for_config(env).map_err(|e| PolicyError::Config(e.to_string()))?;
+        let (policy, info): (NetworkPolicy, SnapshotInfo) =
+            NetworkPolicy::from_snapshot(bytes, renderer, &Device::flex())
+                .map_err(|e| PolicyError::Refused(format!("{origin}: {e}")))?;
+        Ok(Self {
+            policy: Box::new(policy),
+            version: info.version,
+            description: format!(
+                "{origin} (v{}, step {}, sha256 {})",
+                info.version,
+                info.training_step,
+                &file_sha256(bytes)[..12]
+            ),
+        })
+    }
+}

@@ -1,0 +1,144 @@
+//! The whole physical pipeline against the digital twin, through the
+//! `hardware-agent run --twin` command: simulated KDC101s on
+//! pseudo-terminals, rendered frames, segmentation, the policy, records.
+
+use burn::tensor::Device;
+use serde_json::Value;
+use std::path::Path;
+use std::process::Command;
+use tweezer_nets::{ARCHITECTURE, ActorConfig, EncoderConfig, SnapshotInfo, encode};
+
+/// Runs `hardware-agent` with `args`; its stdout lines as JSON and stderr.
+fn agent(args: &[&str]) -> (bool, Vec<Value>, String) {
+    let out = Command::new(env!("CARGO_BIN_EXE_hardware-agent"))
+        .args(args)
+        .env("RUST_LOG", "warn")
+        .output()
+        .unwrap();
+    let lines = String::from_utf8_lossy(&out.stdout)
+        .lines()
+        .map(|l| serde_json::from_str(l).unwrap())
+        .collect();
+    (
+        out.status.success(),
+        lines,
+        String::from_utf8_lossy(&out.stderr).into(),
+    )
+}
+
+fn read_record(path: &Path) -> Vec<Value> {
+    std::fs::read_to_string(path)
+        .unwrap()
+        .lines()
+        .map(|l| serde_json::from_str(l).unwrap())
+        .collect()
+}
+
+#[test]
+fn the_greedy_policy_reaches_the_target_on_the_twin_and_the_episode_is_recorded() {
+    let dir = tempfile::tempdir().unwrap();
+    let records = dir.path().join("records");
+    let (ok, lines, stderr) = agent(&[
+        "run",
+        "--twin",
+        "--greedy",
+        "--seed",
+        "1",
+        "--rate",
+        "10",
+        "--records",
+        records.to_str().unwrap(),
+    ]);
+    assert!(ok, "{stderr}");
+    let episode = &lines[0];
+    let summary = &episode["summary"];
+    assert_eq!(summary["ending"], "success", "{episode}");
+    // Seed 1's target is 1000 px away; the greedy path takes ~98 steps.
+    let steps = summary["steps"].as_u64().unwrap();
+    assert!((90..=110).contains(&steps), "{steps}");
+    let truth = &episode["twin_truth"];
+    assert_eq!(truth["reached"], true, "the trap truly is at the target");
+    assert_eq!(truth["collided"], false);
+    assert!(
+        truth["position_error_px"].as_f64().unwrap() < 3.0,
+        "{truth}"
+    );
+    // The loop kept time: frame to command well inside the 100 ms period.
+    let timing = &summary["timing"];
+    assert!(
+        timing["latency_ms_p99"].as_f64().unwrap() < 100.0,
+        "{timing}"
+    );
+    let period = timing["period_ms_mean"].as_f64().unwrap();
+    assert!((95.0..110.0).contains(&period), "{period}");
+
+    let record = read_record(Path::new(episode["files"]["record"].as_str().unwrap()));
+    assert_eq!(record[0]["header"]["policy"], "greedy baseline");
+    assert_eq!(record.len() as u64, steps + 2, "header, steps, end");
+    let first = &record[1]["step"];
+    assert_eq!(first["step"], 0);
+    // The trapped sphere is seen at the trap, and the first action drives
+    // toward the target at full speed along the longer axis.
+    let trapped = first["trapped"].as_array().unwrap();
+    assert!((trapped[0].as_f64().unwrap() - 640.0).abs() < 2.0);
+    assert!((trapped[1].as_f64().unwrap() - 512.0).abs() < 2.0);
+    assert_eq!(record.last().unwrap()["end"]["ending"], "success");
+    let picture = std::fs::read(episode["files"]["picture"].as_str().unwrap()).unwrap();
+    assert!(picture.starts_with(b"\x89PNG"));
+}
+
+#[test]
+fn a_snapshot_drives_the_twin_and_a_mismatched_one_is_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    let device = Device::flex();
+    let actor = ActorConfig::new(EncoderConfig::new(32, 40)).init(&device);
+    let info = |height, width| SnapshotInfo {
+        architecture: ARCHITECTURE.into(),
+        height,
+        width,
+        version: 17,
+        training_step: 99,
+    };
+    let snapshot = dir.path().join("v17.safetensors");
+    std::fs::write(&snapshot, encode(&actor, &info(32, 40))).unwrap();
+    let config = dir.path().join("agent.toml");
+    std::fs::write(
+        &config,
+        "[env]\ntime_limit = 12\n[env.image]\nwidth = 40\nheight = 32\n",
+    )
+    .unwrap();
+    let records = dir.path().join("records");
+    let args = |config: &Path| {
+        [
+            "--config",
+            config.to_str().unwrap(),
+            "run",
+            "--twin",
+            "--rate",
+            "20",
+            "--snapshot",
+            snapshot.to_str().unwrap(),
+            "--records",
+            records.to_str().unwrap(),
+        ]
+        .map(String::from)
+    };
+    let (ok, lines, stderr) = agent(&args(&config).each_ref().map(String::as_str));
+    assert!(ok, "{stderr}");
+    let summary = &lines[0]["summary"];
+    // An untrained network wanders: the 12-step limit or a sphere ends it.
+    let ending = summary["ending"].as_str().unwrap();
+    assert!(["timeout", "collision"].contains(&ending), "{summary}");
+    let record = read_record(Path::new(lines[0]["files"]["record"].as_str().unwrap()));
+    assert_eq!(record[0]["header"]["policy_version"], 17);
+
+    // The same snapshot for an agent rendering the paper's 320 x 256.
+    let paper = dir.path().join("paper.toml");
+    std::fs::write(&paper, "[env]\ntime_limit = 12\n").unwrap();
+    let (ok, _, stderr) = agent(&args(&paper).each_ref().map(String::as_str));
+    assert!(!ok);
+    assert!(
+        stderr.contains("refusing the policy") && stderr.contains("40x32"),
+        "{stderr}"
+    );
+}
