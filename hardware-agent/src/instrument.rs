@@ -162,6 +162,11 @@ impl Instrument {
         Ok(())
     }
 
+    /// Virtual obstacle discs in the overlay (keep-out walls aside).
+    pub fn overlay_len(&self) -> usize {
+        self.overlay.discs().len()
+    }
+
     /// The rig.
     pub fn rig(&mut self) -> &mut Rig<InstrumentCamera, TTYPort> {
         &mut self.rig

@@ -3,6 +3,8 @@
 //! segmentation on an instrument's own frames), `bench` and `config`.
 
 mod bench;
+mod bench_loop;
+mod daemon;
 mod run_episodes;
 mod segment_files;
 
@@ -45,18 +47,33 @@ enum Command {
         /// on the instrument).
         #[arg(long, value_name = "DX,DY", value_parser = parse_pair, allow_hyphen_values = true)]
         target_um: Option<[f64; 2]>,
-        /// Control rate, Hz (overrides `control.rate_hz`).
-        #[arg(long)]
-        rate: Option<f64>,
         /// Drive with the greedy baseline instead of the configured policy.
         #[arg(long, conflicts_with = "snapshot")]
         greedy: bool,
         /// Drive with this snapshot file instead of the configured policy.
         #[arg(long, value_name = "FILE")]
         snapshot: Option<PathBuf>,
-        /// Where records go (overrides `records.dir`).
-        #[arg(long, value_name = "DIR")]
-        records: Option<PathBuf>,
+        #[command(flatten)]
+        overrides: LoopOverrides,
+    },
+    /// Serve the gRPC control service (status, episodes, stops, policy,
+    /// overlay, telemetry) until SIGINT or SIGTERM; prints
+    /// `hardware-agent listening on ADDR` once ready.
+    Serve {
+        /// Drive the digital twin instead of the instrument.
+        #[arg(long)]
+        twin: bool,
+        /// Start with the greedy baseline instead of the configured policy.
+        #[arg(long)]
+        greedy: bool,
+        /// Address to listen on (overrides `service.listen`).
+        #[arg(long, value_name = "ADDR")]
+        listen: Option<std::net::SocketAddr>,
+        #[command(flatten)]
+        overrides: LoopOverrides,
+        /// Log JSON lines instead of text.
+        #[arg(long)]
+        log_json: bool,
     },
     /// Find the spheres in PNG or TIFF frames (8 or 16 bits) with the
     /// configured segmentation.
@@ -68,11 +85,26 @@ enum Command {
         #[arg(long)]
         json: bool,
     },
-    /// Measure segmentation speed and detection quality on twin frames.
+    /// Measure segmentation speed and detection quality on twin frames,
+    /// then the control loop on the twin against the virtual environment.
     Bench {
         /// Frames per focus and noise setting.
         #[arg(long, default_value_t = 12)]
         frames: u64,
+        /// Episodes per policy on the twin and in the virtual environment
+        /// (0: segmentation only).
+        #[arg(long, default_value_t = 20)]
+        episodes: u64,
+        /// The first episode seed.
+        #[arg(long, default_value_t = 100_000)]
+        seed: u64,
+        /// A trained snapshot to measure besides the greedy baseline.
+        #[arg(long, value_name = "FILE")]
+        snapshot: Option<PathBuf>,
+        /// Control rate on the twin, Hz (overrides `control.rate_hz`: the
+        /// twin keeps up with faster rates than the stages allow).
+        #[arg(long, default_value_t = 20.0)]
+        rate: f64,
         /// One JSON object instead of a table.
         #[arg(long)]
         json: bool,
@@ -89,15 +121,11 @@ fn main() -> anyhow::Result<()> {
             episodes,
             seed,
             target_um,
-            rate,
             greedy,
             snapshot,
-            records,
+            overrides,
         } => {
-            if let Some(rate) = rate {
-                config.control.rate_hz = rate;
-                config.validate()?;
-            }
+            overrides.apply(&mut config)?;
             let args = run_episodes::RunArgs {
                 twin,
                 episodes,
@@ -105,14 +133,68 @@ fn main() -> anyhow::Result<()> {
                 target_um,
                 greedy,
                 snapshot,
-                records,
             };
             run_episodes::run(&config, args)?;
         }
+        Command::Serve {
+            twin,
+            greedy,
+            listen,
+            overrides,
+            log_json,
+        } => {
+            if let Some(listen) = listen {
+                config.service.listen = listen;
+            }
+            overrides.apply(&mut config)?;
+            daemon::serve(config, twin, greedy, log_json)?;
+        }
         Command::Segment { files, json } => segment_files::run(&config, &files, json)?,
-        Command::Bench { frames, json } => bench::run(&config, frames, json)?,
+        Command::Bench {
+            frames,
+            episodes,
+            seed,
+            snapshot,
+            rate,
+            json,
+        } => {
+            config.control.rate_hz = rate;
+            config.validate()?;
+            let args = bench::BenchArgs {
+                frames,
+                episodes,
+                seed,
+                snapshot,
+                json,
+            };
+            bench::run(&config, &args)?;
+        }
     }
     Ok(())
+}
+
+/// Settings of the loop a command may override.
+#[derive(clap::Args)]
+struct LoopOverrides {
+    /// Control rate, Hz (overrides `control.rate_hz`).
+    #[arg(long)]
+    rate: Option<f64>,
+    /// Where records go (overrides `records.dir`).
+    #[arg(long, value_name = "DIR")]
+    records: Option<PathBuf>,
+}
+
+impl LoopOverrides {
+    /// Writes the overrides into `config` and checks it again.
+    fn apply(self, config: &mut AgentConfig) -> anyhow::Result<()> {
+        if let Some(rate) = self.rate {
+            config.control.rate_hz = rate;
+        }
+        if let Some(records) = self.records {
+            config.records.dir = records;
+        }
+        Ok(config.validate()?)
+    }
 }
 
 /// Parses "X,Y" into two finite numbers.

@@ -26,8 +26,6 @@ pub struct RunArgs {
     pub greedy: bool,
     /// A snapshot file instead of the configured policy.
     pub snapshot: Option<PathBuf>,
-    /// Where records go (else the configured directory).
-    pub records: Option<PathBuf>,
 }
 
 /// Runs the episodes and prints a line for each.
@@ -63,7 +61,7 @@ pub fn run(config: &AgentConfig, args: RunArgs) -> anyhow::Result<()> {
             let _ = stopper.stop_now();
         }
     });
-    let records = args.records.unwrap_or_else(|| config.records.dir.clone());
+    let records = &config.records.dir;
     let px_per_um = config.stages.px_per_um;
     for k in 0..args.episodes {
         let seed = args.seed + k;
@@ -82,7 +80,7 @@ pub fn run(config: &AgentConfig, args: RunArgs) -> anyhow::Result<()> {
             twin_seed: args.twin.then_some(seed),
         };
         let (summary, files) =
-            instrument.run_recorded(&mut policy, &header, &records, &halt, |_| {})?;
+            instrument.run_recorded(&mut policy, &header, records, &halt, |_| {})?;
         let line = json!({
             "episode": header.episode,
             "twin_seed": header.twin_seed,

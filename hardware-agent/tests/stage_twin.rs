@@ -164,3 +164,42 @@ fn a_reversal_takes_up_the_backlash_within_one_command_interval() {
     assert!(before - after_one > 0.003, "moved {}", before - after_one);
     stop_and_check_the_estimate(&mut stage, &twin);
 }
+
+#[test]
+fn the_stopper_halts_both_stages_within_100_ms_whatever_their_drivers_do() {
+    use tweezer_hardware_agent::stages::{StagePair, StagesConfig};
+    use tweezer_hardware_agent::twin::{TwinConfig, TwinStages};
+    let twin = TwinStages::spawn(&TwinConfig::default()).unwrap();
+    let (mut pair, infos) = StagePair::open_paths(
+        twin.ports(),
+        &StagesConfig::default(),
+        Duration::from_millis(350),
+    )
+    .unwrap();
+    assert_eq!(infos.map(|i| i.serial), [27_000_001, 27_000_002]);
+    // 200 px/s along image x, 100 along y.
+    pair.set_velocity_px([200.0, 100.0]).unwrap();
+    std::thread::sleep(Duration::from_millis(200));
+    let [x, y] = twin.stages();
+    assert!(x.controller().speed_mm_s() > 0.0 && y.controller().speed_mm_s() > 0.0);
+    // The stopper works from another thread while the pair stays in use.
+    let stopper = pair.stopper();
+    let asked = Instant::now();
+    std::thread::spawn(move || stopper.stop_now().unwrap())
+        .join()
+        .unwrap();
+    until_still(x);
+    until_still(y);
+    let latency = asked.elapsed();
+    assert!(latency < Duration::from_millis(100), "{latency:?}");
+    // The driver's estimate of the carriages (the first move took up the
+    // backlash) is the twin's truth.
+    let estimate = pair.position_mm().unwrap();
+    let truth = twin.carriage_mm();
+    for axis in 0..2 {
+        assert!(
+            (estimate[axis] - truth[axis]).abs() < 5e-4,
+            "{estimate:?} vs {truth:?}"
+        );
+    }
+}

@@ -26,6 +26,21 @@ fn agent(args: &[&str]) -> (bool, Vec<Value>, String) {
     )
 }
 
+/// Greedy episode 1 on the twin at 10 Hz, with the config file if given.
+fn greedy_seed_1(config: Option<&Path>, records: &Path) -> (bool, Vec<Value>, String) {
+    let config = config.map(|c| ["--config", c.to_str().unwrap()]);
+    let args = ["run", "--twin", "--greedy", "--seed", "1", "--rate", "10"];
+    let records = ["--records", records.to_str().unwrap()];
+    let all: Vec<&str> = config
+        .iter()
+        .flatten()
+        .chain(&args)
+        .chain(&records)
+        .copied()
+        .collect();
+    agent(&all)
+}
+
 fn read_record(path: &Path) -> Vec<Value> {
     std::fs::read_to_string(path)
         .unwrap()
@@ -38,17 +53,7 @@ fn read_record(path: &Path) -> Vec<Value> {
 fn the_greedy_policy_reaches_the_target_on_the_twin_and_the_episode_is_recorded() {
     let dir = tempfile::tempdir().unwrap();
     let records = dir.path().join("records");
-    let (ok, lines, stderr) = agent(&[
-        "run",
-        "--twin",
-        "--greedy",
-        "--seed",
-        "1",
-        "--rate",
-        "10",
-        "--records",
-        records.to_str().unwrap(),
-    ]);
+    let (ok, lines, stderr) = greedy_seed_1(None, &records);
     assert!(ok, "{stderr}");
     let episode = &lines[0];
     let summary = &episode["summary"];
@@ -141,4 +146,54 @@ fn a_snapshot_drives_the_twin_and_a_mismatched_one_is_refused() {
         stderr.contains("refusing the policy") && stderr.contains("40x32"),
         "{stderr}"
     );
+}
+
+#[test]
+fn virtual_obstacles_fill_a_field_of_view_wider_than_the_camera() {
+    let dir = tempfile::tempdir().unwrap();
+    let overlay = dir.path().join("overlay.toml");
+    // 700 px right of the trap: beyond the camera's 640 px half-width,
+    // inside the policy's 800.
+    std::fs::write(&overlay, "discs_um = [[64.8148, 0.0]]\n").unwrap();
+    let config = dir.path().join("agent.toml");
+    std::fs::write(
+        &config,
+        format!(
+            "[env]\nfov_px = [1600, 1280]\ntime_limit = 3\n[env.image]\nwidth = 80\nheight = 64\n\
+             [overlay]\nfile = {:?}\n",
+            overlay.to_str().unwrap()
+        ),
+    )
+    .unwrap();
+    let records = dir.path().join("records");
+    let (ok, lines, stderr) = greedy_seed_1(Some(&config), &records);
+    assert!(ok, "{stderr}");
+    let record = read_record(Path::new(lines[0]["files"]["record"].as_str().unwrap()));
+    let first = &record[1]["step"];
+    // The camera's frame sits centred in the wider field of view.
+    let trapped = first["trapped"].as_array().unwrap();
+    assert!(
+        (trapped[0].as_f64().unwrap() - 800.0).abs() < 2.0,
+        "{first}"
+    );
+    assert!(
+        (trapped[1].as_f64().unwrap() - 640.0).abs() < 2.0,
+        "{first}"
+    );
+    let detected = first["detected"].as_u64().unwrap() as usize;
+    let centres = first["centres"].as_array().unwrap();
+    let virtual_disc = &centres[detected];
+    assert!(
+        (virtual_disc[0].as_f64().unwrap() - 1500.0).abs() < 0.1,
+        "{first}"
+    );
+    assert!(
+        (virtual_disc[1].as_f64().unwrap() - 640.0).abs() < 0.1,
+        "{first}"
+    );
+    // Every detection lies where the camera can see.
+    for c in &centres[..detected] {
+        let x = c[0].as_f64().unwrap();
+        assert!((160.0 - 27.0..=1440.0 + 27.0).contains(&x), "{c}");
+    }
 }

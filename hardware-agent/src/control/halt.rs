@@ -36,9 +36,18 @@ impl Halt {
         self.lock().clone()
     }
 
-    /// Clears the request (before the next episode).
+    /// Clears the request (an emergency stop being reset).
     pub fn clear(&self) {
         *self.lock() = None;
+    }
+
+    /// Clears a stop request left over from the last episode; an emergency
+    /// stop stays.
+    pub fn clear_stop(&self) {
+        let mut slot = self.lock();
+        if *slot == Some(HaltKind::Stop) {
+            *slot = None;
+        }
     }
 
     /// Waits until `deadline` unless a request comes first; returns it.
@@ -82,8 +91,11 @@ mod tests {
         );
         assert!(asked.elapsed() < Duration::from_secs(5));
         halt.request(HaltKind::Stop);
+        halt.clear_stop();
         assert_eq!(halt.pending(), Some(HaltKind::Emergency("test".into())));
         halt.clear();
+        halt.request(HaltKind::Stop);
+        halt.clear_stop();
         assert_eq!(halt.wait_until(Instant::now()), None);
     }
 }

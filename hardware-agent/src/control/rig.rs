@@ -14,8 +14,10 @@ use tweezer_gym::{Action, EnvConfig, Observation, ObservationBounds, Policy};
 /// A rig that cannot be assembled.
 #[derive(Debug, thiserror::Error)]
 pub enum RigError {
-    /// The camera's frames do not show the environment's field of view.
-    #[error("the camera gives {camera:?} px frames; env.fov_px is {fov:?}")]
+    /// The camera's frames are larger than the environment's field of view.
+    #[error(
+        "the camera gives {camera:?} px frames, larger than env.fov_px {fov:?} (the policy's field of view holds the camera's, and virtual obstacles may fill a wider one)"
+    )]
     FrameSize {
         /// The camera's frame size.
         camera: [usize; 2],
@@ -44,10 +46,14 @@ pub struct Rig<C, P: Read + Write> {
     overlay: Overlay,
     watchdog: Watchdog,
     bounds: ObservationBounds,
+    /// Where the camera frame's origin lies in the policy's field of view.
+    frame_offset: [f64; 2],
 }
 
 impl<C: Camera, P: Read + Write + Send + 'static> Rig<C, P> {
-    /// Assembles a rig; the camera must show the environment's FOV.
+    /// Assembles a rig. The camera's frame lies centred in the policy's
+    /// field of view (`env.fov_px`), which may be wider: virtual obstacles
+    /// are known everywhere, so they fill what the camera cannot see.
     pub fn new(
         camera: C,
         stages: StagePair<P>,
@@ -58,16 +64,16 @@ impl<C: Camera, P: Read + Write + Send + 'static> Rig<C, P> {
     ) -> Result<Self, RigError> {
         control.validate().map_err(RigError::Control)?;
         let fov = env.fov_px;
-        if camera.size() != fov.map(|v| v as usize) {
-            return Err(RigError::FrameSize {
-                camera: camera.size(),
-                fov,
-            });
+        let frame = camera.size();
+        if frame[0] > fov[0] as usize || frame[1] > fov[1] as usize {
+            return Err(RigError::FrameSize { camera: frame, fov });
         }
+        let frame_offset = [0, 1].map(|a| 0.5 * (f64::from(fov[a]) - frame[a] as f64));
         let watchdog = Watchdog::spawn(stages.stopper()).map_err(RigError::Watchdog)?;
         Ok(Self {
             camera,
             bounds: ObservationBounds::for_config(&env),
+            frame_offset,
             stages,
             segmenter,
             env,
@@ -189,10 +195,13 @@ impl<C: Camera, P: Read + Write + Send + 'static> Rig<C, P> {
                 Err(e) => return Ending::Fault(format!("camera: {e}")),
             };
             let frame_in = Instant::now();
-            let detections = match self.segmenter.segment(&frame) {
+            let mut detections = match self.segmenter.segment(&frame) {
                 Ok(d) => d,
                 Err(e) => return Ending::Fault(format!("segmentation: {e}")),
             };
+            for d in &mut detections {
+                d.centre = [0, 1].map(|a| d.centre[a] + self.frame_offset[a]);
+            }
             let stage_mm = match self.stages.position_mm() {
                 Ok(mm) => mm,
                 Err(e) => return Ending::Fault(e.to_string()),

@@ -111,8 +111,9 @@ pub struct TwinCamera {
 }
 
 impl TwinCamera {
-    /// A camera over `stages`, whose sample follows `env` (its FOV must be
-    /// the optics' frame size) mapped through `calibration`.
+    /// A camera over `stages`, whose sample follows `env` mapped through
+    /// `calibration`; its frame (the optics' size) is centred in the
+    /// environment's field of view, which may be wider.
     pub fn new(
         stages: Arc<TwinStages>,
         env: &EnvConfig,
@@ -120,11 +121,11 @@ impl TwinCamera {
         calibration: Calibration,
     ) -> Result<Self, ConfigError> {
         let fov = env.fov_px.map(|v| v as usize);
-        if fov != optics.size_px {
+        if optics.size_px[0] > fov[0] || optics.size_px[1] > fov[1] {
             return Err(ConfigError::Invalid {
                 field: "twin.optics.size_px".into(),
                 reason: format!(
-                    "{:?} differs from env.fov_px {:?}: the twin's frames must show the field of view",
+                    "{:?} is larger than env.fov_px {:?}: the frame must lie within the field of view",
                     optics.size_px, env.fov_px
                 ),
             });
@@ -182,6 +183,7 @@ impl Camera for TwinCamera {
     }
 
     fn grab(&mut self) -> Result<GrayFrame, CameraError> {
+        let fov = self.env.config().fov_px.map(f64::from);
         let start = self.env.start_position();
         let offset = self.trap_offset_px();
         let trap = [start[0] + offset[0], start[1] + offset[1]];
@@ -190,17 +192,19 @@ impl Camera for TwinCamera {
             Ok(observation) => &observation.centres,
             Err(_) => &self.env.observation().centres,
         };
+        let trap_fov = [fov[0] / 2.0, fov[1] / 2.0];
         let [w, h] = self.optics.size_px.map(|v| v as f64);
-        let trap_fov = [w / 2.0, h / 2.0];
+        // The frame's origin in the field of view.
+        let offset = [trap_fov[0] - w / 2.0, trap_fov[1] - h / 2.0];
         let reach = self.collision_radius_px;
         let mut spheres = Vec::with_capacity(centres.len() + 1);
-        spheres.push(trap_fov);
+        spheres.push([w / 2.0, h / 2.0]);
         for c in centres {
             let c = [f64::from(c[0]), f64::from(c[1])];
             if (c[0] - trap_fov[0]).hypot(c[1] - trap_fov[1]) <= reach {
                 self.collided = true;
             }
-            spheres.push(c);
+            spheres.push([c[0] - offset[0], c[1] - offset[1]]);
         }
         self.frames += 1;
         let seed = SplitMix64::derived(self.env.seed(), self.frames).next_u64();

@@ -1,0 +1,91 @@
+//! `hardware-agent serve`: the daemon on the microscope PC. The instrument
+//! (or its twin) is driven by a control thread that owns it; the gRPC
+//! service reads the shared status, hands the thread jobs (start an
+//! episode, load a policy, set the overlay) and stops the stages itself on
+//! an emergency stop, without waiting for the loop.
+
+mod control_thread;
+mod service;
+mod status;
+
+use anyhow::Context;
+use control_thread::{ControlThread, Job};
+use service::AgentService;
+use status::Shared;
+use std::sync::Arc;
+use tokio::net::TcpListener;
+use tokio_stream::wrappers::TcpListenerStream;
+use tweezer_gym::{init_logging, stop_signal};
+use tweezer_hardware_agent::config::AgentConfig;
+use tweezer_hardware_agent::control::HaltKind;
+use tweezer_hardware_agent::instrument::Instrument;
+use tweezer_hardware_agent::policy_source::LoadedPolicy;
+use tweezer_proto::pb::hardware_agent_server::HardwareAgentServer;
+
+/// How long clients may stay connected after a stop signal.
+const SHUTDOWN_GRACE: std::time::Duration = std::time::Duration::from_secs(2);
+
+/// Serves until SIGINT or SIGTERM; the stages are stopped on the way out.
+pub fn serve(config: AgentConfig, twin: bool, greedy: bool, json_logs: bool) -> anyhow::Result<()> {
+    init_logging(json_logs);
+    let policy = if greedy {
+        LoadedPolicy::greedy()
+    } else {
+        LoadedPolicy::load(&config.policy, &config.env)?
+    };
+    tracing::info!(policy = %policy.description, "policy loaded");
+    let mut instrument = Instrument::open(&config, twin)?;
+    let stopper = instrument.rig().stopper();
+    let shared = Arc::new(Shared::new(stopper, &policy, instrument.overlay_len()));
+    let (jobs, thread) = ControlThread::spawn(instrument, policy, config.clone(), shared.clone())?;
+    let runtime = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(2)
+        .enable_all()
+        .build()?;
+    let served = runtime.block_on(async {
+        let listener = TcpListener::bind(config.service.listen)
+            .await
+            .with_context(|| {
+                format!(
+                    "cannot listen on {} (service.listen)",
+                    config.service.listen
+                )
+            })?;
+        let addr = listener.local_addr()?;
+        tracing::info!(%addr, twin, "hardware agent serving");
+        println!("hardware-agent listening on {addr}");
+        let service = AgentService::new(shared.clone(), jobs.clone());
+        let (stopping, mut stopped) = tokio::sync::watch::channel(false);
+        let shutdown = async move {
+            let signal = stop_signal().await;
+            tracing::info!(
+                signal,
+                "stopping: ending the episode and stopping the stages"
+            );
+            let _ = stopping.send(true);
+        };
+        let server = tonic::transport::Server::builder()
+            .add_service(HardwareAgentServer::new(service))
+            .serve_with_incoming_shutdown(TcpListenerStream::new(listener), shutdown);
+        // Clients get a grace period to hang up; a telemetry subscriber
+        // that never does must not keep the agent alive.
+        let grace = async {
+            let _ = stopped.wait_for(|&s| s).await;
+            tokio::time::sleep(SHUTDOWN_GRACE).await;
+            tracing::warn!("closing connections still open after the shutdown grace period");
+        };
+        tokio::select! {
+            served = server => served.context("gRPC server failed"),
+            () = grace => Ok(()),
+        }
+    });
+    // Whatever ended the service, the episode ends and the motors stop.
+    shared.halt.request(HaltKind::Stop);
+    let _ = jobs.send(Job::Quit);
+    drop(jobs);
+    if thread.join().is_err() {
+        let _ = shared.stopper.stop_now();
+        anyhow::bail!("the control thread panicked (the stages were stopped)");
+    }
+    served
+}

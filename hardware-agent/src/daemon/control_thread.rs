@@ -1,0 +1,324 @@
+//! The thread that owns the instrument and the policy: it runs the jobs the
+//! service hands it, one at a time, and keeps the shared status current.
+
+use super::status::{Shared, State};
+use std::path::PathBuf;
+use std::sync::Arc;
+use std::sync::mpsc::{Receiver, Sender, channel};
+use std::thread::JoinHandle;
+use tokio::sync::oneshot;
+use tweezer_gym::{Action, Observation};
+use tweezer_hardware_agent::apt::StopMode;
+use tweezer_hardware_agent::config::AgentConfig;
+use tweezer_hardware_agent::control::{Ending, EpisodeSummary, StepLog};
+use tweezer_hardware_agent::instrument::Instrument;
+use tweezer_hardware_agent::overlay::OverlaySpec;
+use tweezer_hardware_agent::policy_source::{LoadedPolicy, SnapshotChoice};
+use tweezer_hardware_agent::record::EpisodeHeader;
+use tweezer_proto::{action_to_wire, observation_to_wire, pb};
+
+/// Where an episode's target lies.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum Target {
+    /// Relative to the trap now, µm along the image axes.
+    RelativeUm([f64; 2]),
+    /// Stage positions (X, Y), mm.
+    AbsoluteMm([f64; 2]),
+}
+
+/// A policy to load.
+#[derive(Clone, Debug, PartialEq)]
+pub enum PolicyChoice {
+    /// From the configured learner.
+    Learner(SnapshotChoice),
+    /// From a snapshot file.
+    File(PathBuf),
+    /// The greedy baseline.
+    Greedy,
+}
+
+/// Why a job was refused.
+#[derive(Debug)]
+pub enum JobError {
+    /// Not now (the agent is busy, stopped or faulted).
+    Refused(String),
+    /// Never: the request is wrong.
+    Invalid(String),
+}
+
+type Reply = oneshot::Sender<Result<(), JobError>>;
+
+/// Work for the control thread.
+pub enum Job {
+    /// Start an episode; the reply comes once it is running.
+    Start {
+        target: Option<Target>,
+        twin_seed: Option<u64>,
+        reply: Reply,
+    },
+    /// Replace the policy.
+    LoadPolicy { choice: PolicyChoice, reply: Reply },
+    /// Replace the virtual obstacles.
+    SetOverlay { spec: OverlaySpec, reply: Reply },
+    /// Stop the stages and end the thread.
+    Quit,
+}
+
+/// The thread's state.
+pub struct ControlThread {
+    instrument: Instrument,
+    policy: LoadedPolicy,
+    config: AgentConfig,
+    shared: Arc<Shared>,
+}
+
+impl ControlThread {
+    /// Starts the thread; jobs go to the returned sender.
+    pub fn spawn(
+        instrument: Instrument,
+        policy: LoadedPolicy,
+        config: AgentConfig,
+        shared: Arc<Shared>,
+    ) -> std::io::Result<(Sender<Job>, JoinHandle<()>)> {
+        let (jobs, inbox) = channel();
+        let mut thread = Self {
+            instrument,
+            policy,
+            config,
+            shared,
+        };
+        let handle = std::thread::Builder::new()
+            .name("control".into())
+            .spawn(move || thread.run(inbox))?;
+        Ok((jobs, handle))
+    }
+
+    fn run(&mut self, inbox: Receiver<Job>) {
+        while let Ok(job) = inbox.recv() {
+            match job {
+                Job::Quit => break,
+                Job::Start {
+                    target,
+                    twin_seed,
+                    reply,
+                } => self.start(target, twin_seed, reply),
+                Job::LoadPolicy { choice, reply } => {
+                    let result = self.load_policy(choice);
+                    let _ = reply.send(result);
+                }
+                Job::SetOverlay { spec, reply } => {
+                    let result = self.set_overlay(&spec);
+                    let _ = reply.send(result);
+                }
+            }
+        }
+        if self
+            .instrument
+            .rig()
+            .stages()
+            .stop(StopMode::Profiled)
+            .is_err()
+        {
+            let _ = self.shared.stopper.stop_now();
+        }
+    }
+
+    /// Loads a policy; the service has claimed the agent (Loading).
+    fn load_policy(&mut self, choice: PolicyChoice) -> Result<(), JobError> {
+        let env = &self.config.env;
+        let loaded = match &choice {
+            PolicyChoice::Greedy => Ok(LoadedPolicy::greedy()),
+            PolicyChoice::File(path) => LoadedPolicy::from_file(path, env),
+            PolicyChoice::Learner(snapshot) => LoadedPolicy::from_learner(
+                &self.config.policy.learner,
+                *snapshot,
+                std::time::Duration::from_secs_f64(self.config.policy.timeout_s),
+                env,
+            ),
+        };
+        let mut status = self.shared.status();
+        status.state = State::Idle;
+        let policy = loaded.map_err(|e| JobError::Invalid(e.to_string()))?;
+        tracing::info!(policy = %policy.description, "policy loaded");
+        status.policy_version = policy.version;
+        status.policy = policy.description.clone();
+        self.policy = policy;
+        Ok(())
+    }
+
+    /// Replaces the overlay; the service has claimed the agent (Loading).
+    fn set_overlay(&mut self, spec: &OverlaySpec) -> Result<(), JobError> {
+        let result = self
+            .instrument
+            .set_overlay(spec)
+            .map_err(|e| JobError::Invalid(e.to_string()));
+        let mut status = self.shared.status();
+        status.state = State::Idle;
+        status.virtual_obstacles = self.instrument.overlay_len();
+        result
+    }
+
+    /// The target relative to the trap, px, checked against the travel.
+    fn target_offset(
+        &mut self,
+        target: Option<Target>,
+        twin_seed: Option<u64>,
+    ) -> Result<[f64; 2], JobError> {
+        let seeded = match twin_seed {
+            Some(seed) => Some(self.instrument.start_twin_episode(seed).ok_or_else(|| {
+                JobError::Invalid("twin_seed applies to the digital twin only".into())
+            })?),
+            None => None,
+        };
+        let px_per_um = self.config.stages.px_per_um;
+        let stages = self.instrument.rig().stages();
+        let now = stages
+            .position_px()
+            .map_err(|e| JobError::Refused(e.to_string()))?;
+        let offset = match (target, seeded) {
+            (Some(Target::RelativeUm([x, y])), _) => [x * px_per_um, y * px_per_um],
+            (Some(Target::AbsoluteMm(mm)), _) => {
+                let at = stages.px(mm);
+                [at[0] - now[0], at[1] - now[1]]
+            }
+            (None, Some(offset)) => offset,
+            (None, None) => return Err(JobError::Invalid("no target given".into())),
+        };
+        if !offset.iter().all(|v| v.is_finite()) {
+            return Err(JobError::Invalid(format!(
+                "target {offset:?} px is not finite"
+            )));
+        }
+        let [lo, hi] = stages.travel_px();
+        let margin = self.config.overlay.keep_out_um * px_per_um;
+        let goal = [now[0] + offset[0], now[1] + offset[1]];
+        let inside = (0..2).all(|a| goal[a] >= lo[a] + margin && goal[a] <= hi[a] - margin);
+        if !inside {
+            return Err(JobError::Invalid(format!(
+                "the target lies outside the stages' travel limits (less the {} µm keep-out zone)",
+                self.config.overlay.keep_out_um
+            )));
+        }
+        Ok(offset)
+    }
+
+    /// Runs an episode; the service has claimed the agent (Running).
+    fn start(&mut self, target: Option<Target>, twin_seed: Option<u64>, reply: Reply) {
+        self.shared.halt.clear_stop();
+        let offset = match self.target_offset(target, twin_seed) {
+            Ok(offset) => offset,
+            Err(e) => {
+                self.shared.status().state = State::Idle;
+                let _ = reply.send(Err(e));
+                return;
+            }
+        };
+        let episode = {
+            let mut status = self.shared.status();
+            status.episode += 1;
+            status.step = 0;
+            status.message.clear();
+            status.episode
+        };
+        let _ = reply.send(Ok(()));
+        let header = EpisodeHeader {
+            episode,
+            policy: self.policy.description.clone(),
+            policy_version: self.policy.version,
+            target_offset_px: offset,
+            rate_hz: self.config.control.rate_hz,
+            twin_seed,
+        };
+        let shared = self.shared.clone();
+        let records = self.config.records.dir.clone();
+        let result = self.instrument.run_recorded(
+            &mut self.policy,
+            &header,
+            &records,
+            &shared.halt,
+            |log| report_step(&shared, episode, log),
+        );
+        let mut status = self.shared.status();
+        match result {
+            Ok((summary, files)) => {
+                tracing::info!(episode, ending = ?summary.ending, steps = summary.steps, record = %files.record.display(), "episode ended");
+                let _ = self
+                    .shared
+                    .telemetry
+                    .send(final_telemetry(episode, &summary));
+                status.state = match &summary.ending {
+                    Ending::EmergencyStopped(_) => State::EmergencyStopped,
+                    Ending::Fault(_) | Ending::TrapLost => State::Fault,
+                    _ => State::Idle,
+                };
+                status.message = match &summary.ending {
+                    Ending::EmergencyStopped(reason) | Ending::Fault(reason) => reason.clone(),
+                    Ending::TrapLost => "the trapped sphere was lost".into(),
+                    _ => String::new(),
+                };
+                status.period_ms = summary.timing.period_ms_mean;
+                status.last_ending = Some(summary.ending);
+            }
+            Err(e) => {
+                tracing::error!(%e, "episode failed");
+                status.state = State::Fault;
+                status.message = e.to_string();
+                status.last_ending = Some(Ending::Fault(e.to_string()));
+            }
+        }
+    }
+}
+
+/// Updates the status and sends telemetry for one step.
+fn report_step(shared: &Shared, episode: u64, log: &StepLog) {
+    {
+        let mut status = shared.status();
+        status.step = log.step + 1;
+        status.stage_mm = log.stage_mm;
+        status.detections = log.detected as u32;
+        status.latency_ms = log.latency_ms;
+        if log.step > 0 {
+            status.period_ms = 1000.0 * log.time_s / f64::from(log.step);
+        }
+    }
+    let observation = Observation {
+        centres: log.centres.clone(),
+        vector: log.vector,
+    };
+    let action = Action::clipped(log.action[0], log.action[1]).unwrap_or(Action::ZERO);
+    let _ = shared.telemetry.send(pb::Telemetry {
+        episode,
+        step: log.step,
+        time_s: log.time_s,
+        observation: Some(observation_to_wire(&observation)),
+        action: Some(action_to_wire(action)),
+        stage: Some(pb::StagePosition {
+            x_mm: log.stage_mm[0],
+            y_mm: log.stage_mm[1],
+        }),
+        latency_ms: log.latency_ms,
+        outcome: pb::Outcome::Running.into(),
+    });
+}
+
+/// The telemetry message that closes an episode.
+fn final_telemetry(episode: u64, summary: &EpisodeSummary) -> pb::Telemetry {
+    pb::Telemetry {
+        episode,
+        step: summary.steps,
+        time_s: summary.duration_s,
+        outcome: ending_to_wire(&summary.ending).into(),
+        ..pb::Telemetry::default()
+    }
+}
+
+/// The wire outcome of an ending.
+pub fn ending_to_wire(ending: &Ending) -> pb::Outcome {
+    match ending {
+        Ending::Success => pb::Outcome::Success,
+        Ending::Collision => pb::Outcome::Collision,
+        Ending::Timeout => pb::Outcome::Timeout,
+        Ending::Stopped | Ending::EmergencyStopped(_) => pb::Outcome::Stopped,
+        Ending::TrapLost | Ending::Fault(_) => pb::Outcome::Fault,
+    }
+}

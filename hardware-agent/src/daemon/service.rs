@@ -1,0 +1,289 @@
+//! The `tweezer.v1.HardwareAgent` gRPC service: wire types in, jobs and
+//! halt requests out, the shared status back as wire types.
+
+use super::control_thread::{Job, JobError, PolicyChoice, Target, ending_to_wire};
+use super::status::{Shared, State, Status};
+use std::pin::Pin;
+use std::sync::Arc;
+use std::sync::mpsc::Sender;
+use std::time::{Duration, Instant};
+use tokio::sync::{broadcast, mpsc, oneshot};
+use tokio_stream::Stream;
+use tokio_stream::wrappers::ReceiverStream;
+use tonic::{Request, Response, Status as RpcStatus};
+use tweezer_hardware_agent::control::HaltKind;
+use tweezer_hardware_agent::overlay::{MAX_DISCS, OverlaySpec, Wall};
+use tweezer_hardware_agent::policy_source::SnapshotChoice;
+use tweezer_proto::pb;
+use tweezer_proto::pb::hardware_agent_server::HardwareAgent;
+
+/// How long StopEpisode waits for the loop to end before answering.
+const STOP_WAIT: Duration = Duration::from_secs(3);
+/// Longest an emergency stop's reason may be.
+const MAX_REASON: usize = 1000;
+
+type TelemetryStream = Pin<Box<dyn Stream<Item = Result<pb::Telemetry, RpcStatus>> + Send>>;
+
+/// The service over the shared state.
+pub struct AgentService {
+    shared: Arc<Shared>,
+    jobs: Sender<Job>,
+}
+
+impl AgentService {
+    pub fn new(shared: Arc<Shared>, jobs: Sender<Job>) -> Self {
+        Self { shared, jobs }
+    }
+
+    fn status(&self) -> Response<pb::AgentStatus> {
+        Response::new(status_to_wire(&self.shared.status()))
+    }
+
+    /// Claims the idle agent as `state`, hands the control thread a job
+    /// and waits for its answer.
+    async fn submit(
+        &self,
+        state: State,
+        job: impl FnOnce(oneshot::Sender<Result<(), JobError>>) -> Job,
+    ) -> Result<(), RpcStatus> {
+        self.shared
+            .claim(state)
+            .map_err(RpcStatus::failed_precondition)?;
+        let (reply, answer) = oneshot::channel();
+        self.jobs
+            .send(job(reply))
+            .map_err(|_| RpcStatus::unavailable("the control thread has stopped"))?;
+        match answer.await {
+            Ok(Ok(())) => Ok(()),
+            Ok(Err(JobError::Refused(why))) => Err(RpcStatus::failed_precondition(why)),
+            Ok(Err(JobError::Invalid(why))) => Err(RpcStatus::invalid_argument(why)),
+            Err(_) => Err(RpcStatus::unavailable("the control thread has stopped")),
+        }
+    }
+}
+
+fn finite(v: &pb::Vector2, field: &str) -> Result<[f64; 2], RpcStatus> {
+    if v.x.is_finite() && v.y.is_finite() {
+        Ok([v.x, v.y])
+    } else {
+        Err(RpcStatus::invalid_argument(format!(
+            "{field} = ({}, {}) must be finite",
+            v.x, v.y
+        )))
+    }
+}
+
+#[tonic::async_trait]
+impl HardwareAgent for AgentService {
+    type StreamTelemetryStream = TelemetryStream;
+
+    async fn get_status(
+        &self,
+        _: Request<pb::AgentStatusRequest>,
+    ) -> Result<Response<pb::AgentStatus>, RpcStatus> {
+        Ok(self.status())
+    }
+
+    async fn start_episode(
+        &self,
+        request: Request<pb::StartEpisodeRequest>,
+    ) -> Result<Response<pb::AgentStatus>, RpcStatus> {
+        let request = request.into_inner();
+        let target = match &request.target {
+            Some(pb::start_episode_request::Target::RelativeUm(v)) => {
+                Some(Target::RelativeUm(finite(v, "relative_um")?))
+            }
+            Some(pb::start_episode_request::Target::AbsoluteMm(p)) => {
+                let mm = [p.x_mm, p.y_mm];
+                if !mm.iter().all(|v| v.is_finite()) {
+                    return Err(RpcStatus::invalid_argument(format!(
+                        "absolute_mm = {mm:?} must be finite"
+                    )));
+                }
+                Some(Target::AbsoluteMm(mm))
+            }
+            None => None,
+        };
+        let twin_seed = request.twin_seed;
+        self.submit(State::Running, |reply| Job::Start {
+            target,
+            twin_seed,
+            reply,
+        })
+        .await?;
+        Ok(self.status())
+    }
+
+    async fn stop_episode(
+        &self,
+        _: Request<pb::StopEpisodeRequest>,
+    ) -> Result<Response<pb::AgentStatus>, RpcStatus> {
+        if self.shared.status().state == State::Running {
+            self.shared.halt.request(HaltKind::Stop);
+            let deadline = Instant::now() + STOP_WAIT;
+            while self.shared.status().state == State::Running && Instant::now() < deadline {
+                tokio::time::sleep(Duration::from_millis(5)).await;
+            }
+        }
+        Ok(self.status())
+    }
+
+    async fn emergency_stop(
+        &self,
+        request: Request<pb::EmergencyStopRequest>,
+    ) -> Result<Response<pb::AgentStatus>, RpcStatus> {
+        // The motors first, from here: the loop may be anywhere.
+        let sent = self.shared.stopper.stop_now();
+        let mut reason: String = request.into_inner().reason;
+        reason.truncate(reason.floor_char_boundary(MAX_REASON));
+        if reason.is_empty() {
+            reason = "emergency stop".into();
+        }
+        tracing::warn!(%reason, sent = sent.is_ok(), "emergency stop");
+        self.shared
+            .halt
+            .request(HaltKind::Emergency(reason.clone()));
+        {
+            let mut status = self.shared.status();
+            status.state = State::EmergencyStopped;
+            status.message = match sent {
+                Ok(()) => reason,
+                Err(e) => format!("{reason} (the stop could not be sent to a controller: {e})"),
+            };
+        }
+        Ok(self.status())
+    }
+
+    async fn reset_emergency_stop(
+        &self,
+        _: Request<pb::ResetEmergencyStopRequest>,
+    ) -> Result<Response<pb::AgentStatus>, RpcStatus> {
+        let mut status = self.shared.status();
+        match status.state {
+            State::EmergencyStopped | State::Fault => {}
+            State::Running => {
+                return Err(RpcStatus::failed_precondition(
+                    "an episode is running: stop it first",
+                ));
+            }
+            State::Idle | State::Loading => {
+                drop(status);
+                return Ok(self.status());
+            }
+        }
+        self.shared.halt.clear();
+        status.state = State::Idle;
+        status.message.clear();
+        let reply = status_to_wire(&status);
+        Ok(Response::new(reply))
+    }
+
+    async fn load_policy(
+        &self,
+        request: Request<pb::LoadPolicyRequest>,
+    ) -> Result<Response<pb::AgentStatus>, RpcStatus> {
+        use pb::load_policy_request::Source;
+        let choice = match request.into_inner().source {
+            Some(Source::LearnerSnapshot(s)) => PolicyChoice::Learner(
+                SnapshotChoice::parse(&s).map_err(RpcStatus::invalid_argument)?,
+            ),
+            Some(Source::File(f)) if !f.is_empty() => PolicyChoice::File(f.into()),
+            Some(Source::Greedy(true)) => PolicyChoice::Greedy,
+            _ => {
+                return Err(RpcStatus::invalid_argument(
+                    "source: give learner_snapshot, file or greedy = true",
+                ));
+            }
+        };
+        self.submit(State::Loading, |reply| Job::LoadPolicy { choice, reply })
+            .await?;
+        Ok(self.status())
+    }
+
+    async fn set_overlay(
+        &self,
+        request: Request<pb::SetOverlayRequest>,
+    ) -> Result<Response<pb::AgentStatus>, RpcStatus> {
+        let request = request.into_inner();
+        if request.discs_um.len() + request.walls.len() > MAX_DISCS {
+            return Err(RpcStatus::invalid_argument(format!(
+                "the overlay lists more than {MAX_DISCS} items"
+            )));
+        }
+        let mut spec = OverlaySpec::default();
+        for (k, d) in request.discs_um.iter().enumerate() {
+            spec.discs_um.push(finite(d, &format!("discs_um[{k}]"))?);
+        }
+        for (k, w) in request.walls.iter().enumerate() {
+            let end = |v: &Option<pb::Vector2>, name: &str| {
+                let field = format!("walls[{k}].{name}");
+                v.as_ref()
+                    .ok_or_else(|| RpcStatus::invalid_argument(format!("{field} is missing")))
+                    .and_then(|v| finite(v, &field))
+            };
+            spec.walls.push(Wall {
+                from_um: end(&w.from_um, "from_um")?,
+                to_um: end(&w.to_um, "to_um")?,
+            });
+        }
+        self.submit(State::Loading, |reply| Job::SetOverlay { spec, reply })
+            .await?;
+        Ok(self.status())
+    }
+
+    async fn stream_telemetry(
+        &self,
+        _: Request<pb::TelemetryRequest>,
+    ) -> Result<Response<Self::StreamTelemetryStream>, RpcStatus> {
+        let mut feed = self.shared.telemetry.subscribe();
+        let (tx, rx) = mpsc::channel(64);
+        tokio::spawn(async move {
+            loop {
+                match feed.recv().await {
+                    Ok(message) => {
+                        if tx.send(Ok(message)).await.is_err() {
+                            break;
+                        }
+                    }
+                    Err(broadcast::error::RecvError::Lagged(skipped)) => {
+                        tracing::debug!(skipped, "a telemetry subscriber fell behind");
+                    }
+                    Err(broadcast::error::RecvError::Closed) => break,
+                }
+            }
+        });
+        Ok(Response::new(Box::pin(ReceiverStream::new(rx))))
+    }
+}
+
+/// The status on the wire.
+fn status_to_wire(status: &Status) -> pb::AgentStatus {
+    let state = match status.state {
+        State::Idle => pb::AgentState::Idle,
+        State::Running => pb::AgentState::Running,
+        State::EmergencyStopped => pb::AgentState::EmergencyStopped,
+        State::Fault => pb::AgentState::Fault,
+        State::Loading => pb::AgentState::Loading,
+    };
+    pb::AgentStatus {
+        state: state.into(),
+        episode: status.episode,
+        step: status.step,
+        stage: Some(pb::StagePosition {
+            x_mm: status.stage_mm[0],
+            y_mm: status.stage_mm[1],
+        }),
+        last_outcome: status
+            .last_ending
+            .as_ref()
+            .map_or(pb::Outcome::Unspecified, ending_to_wire)
+            .into(),
+        policy_version: status.policy_version,
+        loop_period_ms: status.period_ms,
+        message: status.message.clone(),
+        policy: status.policy.clone(),
+        detections: status.detections,
+        latency_ms: status.latency_ms,
+        virtual_obstacles: status.virtual_obstacles as u32,
+    }
+}

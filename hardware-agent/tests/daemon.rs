@@ -1,0 +1,227 @@
+//! The `hardware-agent serve` daemon on the digital twin, over gRPC on a
+//! real socket: status, overlay, episodes, telemetry, emergency stop and
+//! its reset, refusals, and shutdown on SIGTERM.
+
+use std::io::{BufRead, BufReader};
+use std::process::{Child, Command, Stdio};
+use std::time::{Duration, Instant};
+use tonic::Code;
+use tonic::transport::Channel;
+use tweezer_proto::pb;
+use tweezer_proto::pb::hardware_agent_client::HardwareAgentClient;
+
+/// The daemon, killed if the test fails before stopping it.
+struct Daemon(Child);
+
+impl Drop for Daemon {
+    fn drop(&mut self) {
+        let _ = self.0.kill();
+        let _ = self.0.wait();
+    }
+}
+
+fn start(records: &std::path::Path) -> (Daemon, String) {
+    let mut child = Command::new(env!("CARGO_BIN_EXE_hardware-agent"))
+        .args(["serve", "--twin", "--greedy", "--listen", "127.0.0.1:0"])
+        .args(["--rate", "20", "--records"])
+        .arg(records)
+        .env("RUST_LOG", "warn")
+        .stdout(Stdio::piped())
+        .stderr(Stdio::inherit())
+        .spawn()
+        .unwrap();
+    let mut line = String::new();
+    BufReader::new(child.stdout.take().unwrap())
+        .read_line(&mut line)
+        .unwrap();
+    let addr = line
+        .trim()
+        .strip_prefix("hardware-agent listening on ")
+        .unwrap_or_else(|| panic!("unexpected first line {line:?}"))
+        .to_string();
+    (Daemon(child), format!("http://{addr}"))
+}
+
+fn state(status: &pb::AgentStatus) -> pb::AgentState {
+    pb::AgentState::try_from(status.state).unwrap()
+}
+
+async fn wait_for(
+    client: &mut HardwareAgentClient<Channel>,
+    want: pb::AgentState,
+    within: Duration,
+) -> pb::AgentStatus {
+    let deadline = Instant::now() + within;
+    loop {
+        let status = client
+            .get_status(pb::AgentStatusRequest {})
+            .await
+            .unwrap()
+            .into_inner();
+        if state(&status) == want {
+            return status;
+        }
+        assert!(Instant::now() < deadline, "still {status:?}");
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+}
+
+fn seeded(seed: u64) -> pb::StartEpisodeRequest {
+    pb::StartEpisodeRequest {
+        target: None,
+        twin_seed: Some(seed),
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_daemon_runs_episodes_stops_them_and_refuses_what_it_must() {
+    let dir = tempfile::tempdir().unwrap();
+    let (mut daemon, addr) = start(dir.path());
+    let mut client = HardwareAgentClient::connect(addr).await.unwrap();
+
+    let status = wait_for(&mut client, pb::AgentState::Idle, Duration::from_secs(5)).await;
+    assert_eq!(status.policy, "greedy baseline");
+
+    // Bad requests are named and change nothing.
+    let far = pb::StartEpisodeRequest {
+        target: Some(pb::start_episode_request::Target::RelativeUm(pb::Vector2 {
+            x: 20_000.0,
+            y: 0.0,
+        })),
+        twin_seed: None,
+    };
+    let err = client.start_episode(far).await.unwrap_err();
+    assert_eq!(err.code(), Code::InvalidArgument);
+    assert!(err.message().contains("travel limits"), "{}", err.message());
+    let err = client
+        .load_policy(pb::LoadPolicyRequest {
+            source: Some(pb::load_policy_request::Source::File(
+                "/no/such.safetensors".into(),
+            )),
+        })
+        .await
+        .unwrap_err();
+    assert_eq!(err.code(), Code::InvalidArgument);
+    assert!(
+        err.message().contains("/no/such.safetensors"),
+        "{}",
+        err.message()
+    );
+    let bad_wall = pb::SetOverlayRequest {
+        discs_um: vec![],
+        walls: vec![pb::Wall {
+            from_um: Some(pb::Vector2 {
+                x: 0.0,
+                y: f64::NAN,
+            }),
+            to_um: None,
+        }],
+    };
+    let err = client.set_overlay(bad_wall).await.unwrap_err();
+    assert!(
+        err.message().contains("walls[0].from_um"),
+        "{}",
+        err.message()
+    );
+
+    // A virtual wall 20 µm below the trap: seed 1's target lies ~91 µm
+    // below, so the greedy policy drives into the wall and collides.
+    let wall = pb::SetOverlayRequest {
+        discs_um: vec![],
+        walls: vec![pb::Wall {
+            from_um: Some(pb::Vector2 { x: -60.0, y: 20.0 }),
+            to_um: Some(pb::Vector2 { x: 60.0, y: 20.0 }),
+        }],
+    };
+    let status = client.set_overlay(wall).await.unwrap().into_inner();
+    assert!(status.virtual_obstacles > 40);
+    let mut telemetry = client
+        .stream_telemetry(pb::TelemetryRequest {})
+        .await
+        .unwrap()
+        .into_inner();
+    let status = client.start_episode(seeded(1)).await.unwrap().into_inner();
+    assert_eq!(state(&status), pb::AgentState::Running);
+    let err = client.start_episode(seeded(1)).await.unwrap_err();
+    assert_eq!(
+        err.code(),
+        Code::FailedPrecondition,
+        "one episode at a time"
+    );
+    let mut saw_virtual = false;
+    let outcome = loop {
+        let message = telemetry.message().await.unwrap().unwrap();
+        let outcome = pb::Outcome::try_from(message.outcome).unwrap();
+        if outcome != pb::Outcome::Running {
+            break outcome;
+        }
+        let centres = message.observation.unwrap().centres;
+        saw_virtual |= centres
+            .chunks(2)
+            .any(|c| (c[1] - (512.0 + 216.0)).abs() < 30.0);
+    };
+    assert_eq!(outcome, pb::Outcome::Collision);
+    assert!(saw_virtual, "the wall was in the observations");
+    let status = wait_for(&mut client, pb::AgentState::Idle, Duration::from_secs(5)).await;
+    assert_eq!(status.last_outcome, pb::Outcome::Collision as i32);
+
+    // Without the wall, an emergency stop in mid-episode: the reply comes
+    // at once, motion stops, and nothing moves until the stop is reset.
+    client
+        .set_overlay(pb::SetOverlayRequest::default())
+        .await
+        .unwrap();
+    client.start_episode(seeded(2)).await.unwrap();
+    tokio::time::sleep(Duration::from_millis(600)).await;
+    let asked = Instant::now();
+    let status = client
+        .emergency_stop(pb::EmergencyStopRequest {
+            reason: "test".into(),
+        })
+        .await
+        .unwrap()
+        .into_inner();
+    let latency = asked.elapsed();
+    assert!(latency < Duration::from_millis(100), "{latency:?}");
+    assert_eq!(state(&status), pb::AgentState::EmergencyStopped);
+    tokio::time::sleep(Duration::from_millis(300)).await;
+    let stopped = client
+        .get_status(pb::AgentStatusRequest {})
+        .await
+        .unwrap()
+        .into_inner();
+    assert_eq!(state(&stopped), pb::AgentState::EmergencyStopped);
+    assert_eq!(stopped.last_outcome, pb::Outcome::Stopped as i32);
+    assert_eq!(stopped.message, "test");
+    let err = client.start_episode(seeded(3)).await.unwrap_err();
+    assert_eq!(err.code(), Code::FailedPrecondition);
+    assert!(
+        err.message().contains("emergency stop"),
+        "{}",
+        err.message()
+    );
+    let status = client
+        .reset_emergency_stop(pb::ResetEmergencyStopRequest {})
+        .await
+        .unwrap()
+        .into_inner();
+    assert_eq!(state(&status), pb::AgentState::Idle);
+
+    // SIGTERM ends the daemon cleanly.
+    nix::sys::signal::kill(
+        nix::unistd::Pid::from_raw(daemon.0.id() as i32),
+        nix::sys::signal::Signal::SIGTERM,
+    )
+    .unwrap();
+    let deadline = Instant::now() + Duration::from_secs(10);
+    let exit = loop {
+        if let Some(exit) = daemon.0.try_wait().unwrap() {
+            break exit;
+        }
+        assert!(Instant::now() < deadline, "the daemon did not stop");
+        std::thread::sleep(Duration::from_millis(20));
+    };
+    assert!(exit.success(), "{exit:?}");
+    let records = std::fs::read_dir(dir.path()).unwrap().count();
+    assert_eq!(records, 4, "two episodes: a record and a picture each");
+}
