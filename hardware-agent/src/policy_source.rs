@@ -64,6 +64,16 @@ pub enum SnapshotChoice {
     Version(u64),
 }
 
+impl std::fmt::Display for SnapshotChoice {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Self::Best => f.write_str("best"),
+            Self::Latest => f.write_str("latest"),
+            Self::Version(v) => write!(f, "v{v}"),
+        }
+    }
+}
+
 impl SnapshotChoice {
     /// Parses "best", "latest" or a version number.
     pub fn parse(text: &str) -> Result<Self, String> {
@@ -130,7 +140,7 @@ pub enum PolicyError {
     #[error("{0}")]
     Config(String),
     /// The learner could not be reached or refused.
-    #[error("cannot fetch snapshot {choice:?} from the learner at {address}: {reason}")]
+    #[error("cannot fetch the {choice} snapshot from the learner at {address}: {reason}")]
     Learner {
         /// Its address.
         address: String,
