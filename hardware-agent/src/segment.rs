@@ -6,7 +6,9 @@
 //!
 //! The frame is first binned (2 x 2 by default: the sphere is 54 px across,
 //! so nothing of its shape is lost) and each centre is refined on the
-//! standardised image with a weighted centroid, which makes it sub-pixel.
+//! standardised image, first with a weighted centroid, then by centring a
+//! ring filter of the sphere's ring radius on it (sub-pixel, and blind to
+//! a neighbour's pattern, which pulls a centroid).
 
 mod contour;
 mod filters;
@@ -15,6 +17,9 @@ mod split;
 use crate::camera::GrayFrame;
 use contour::{Contour, trace_outer};
 use serde::{Deserialize, Serialize};
+
+/// How far the ring filter may move a single sphere's centroid, px.
+const RING_REACH_PX: f64 = 3.0;
 
 /// How frames are segmented; lengths and areas in full-resolution px.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -331,7 +336,9 @@ impl Segmenter {
                 shape.centroid
             } else {
                 let radius = (shape.filled_area / std::f64::consts::PI).sqrt() + 1.0;
-                self.refine(shape.centroid, radius, 2.0 * sigma)
+                let centroid = self.refine(shape.centroid, radius, 2.0 * sigma);
+                self.rings
+                    .refine(centroid, RING_REACH_PX / bin, [w, h], &self.deviation)
             };
             found.push(Detection {
                 centre: full_resolution(centre),

@@ -3,7 +3,7 @@
 //! scored by how dark the image is on a circle of that radius around it
 //! (against circles just inside and outside it); sphere centres
 //! are the strongest peaks of that score, at least most of a radius apart,
-//! refined to sub-pixel by a parabola through each peak's neighbours.
+//! refined to sub-pixel by climbing the score sampled bilinearly.
 //! A peak much weaker than the strongest is not a sphere (out-of-focus
 //! debris merged with one, say), so a blob may yield a single centre.
 
@@ -20,31 +20,38 @@ const MIN_RELATIVE_SCORE: f64 = 0.5;
 /// crossing the rings of its neighbours, does not fit.
 #[derive(Debug, Clone)]
 pub struct RingScore {
-    /// Offsets on the ring, inside it and outside it.
+    /// Offsets on the ring, inside it and outside it: rounded for the
+    /// search over pixels, exact for the sub-pixel refinement.
     circles: [Vec<(i64, i64)>; 3],
+    exact: [Vec<[f64; 2]>; 3],
 }
 
 impl RingScore {
     /// A scorer for rings of `radius` binned px.
     pub fn new(radius: f64) -> Self {
         let gap = (radius / 4.0).max(2.0);
-        let circle = |r: f64| {
-            let mut offsets: Vec<(i64, i64)> = (0..RING_SAMPLES)
+        let exact = |r: f64| -> Vec<[f64; 2]> {
+            (0..RING_SAMPLES)
                 .map(|k| {
                     let a = std::f64::consts::TAU * k as f64 / RING_SAMPLES as f64;
-                    ((r * a.cos()).round() as i64, (r * a.sin()).round() as i64)
+                    [r * a.cos(), r * a.sin()]
                 })
+                .collect()
+        };
+        let exact = [exact(radius), exact(radius - gap), exact(radius + gap)];
+        let circles = exact.clone().map(|points| {
+            let mut offsets: Vec<(i64, i64)> = points
+                .iter()
+                .map(|p| (p[0].round() as i64, p[1].round() as i64))
                 .collect();
             offsets.dedup();
             offsets
-        };
-        Self {
-            circles: [circle(radius), circle(radius - gap), circle(radius + gap)],
-        }
+        });
+        Self { circles, exact }
     }
 
-    /// How much darker the ring around (x, y) is than its surroundings
-    /// (samples off the image are skipped).
+    /// How much darker the ring around pixel (x, y) is than its
+    /// surroundings (samples off the image are skipped).
     fn at(&self, x: i64, y: i64, w: usize, h: usize, deviation: &[f32]) -> f64 {
         let mean = |offsets: &[(i64, i64)]| {
             let (mut sum, mut n) = (0.0f64, 0usize);
@@ -59,6 +66,67 @@ impl RingScore {
         };
         let [ring, inside, outside] = &self.circles;
         0.5 * (mean(inside) + mean(outside)) - mean(ring)
+    }
+
+    /// The same at a sub-pixel centre, sampling bilinearly.
+    fn at_exact(&self, c: [f64; 2], w: usize, h: usize, deviation: &[f32]) -> f64 {
+        let sample = |x: f64, y: f64| -> Option<f64> {
+            let (x0, y0) = (x.floor(), y.floor());
+            if x0 < 0.0 || y0 < 0.0 || x0 + 1.0 >= w as f64 || y0 + 1.0 >= h as f64 {
+                return None;
+            }
+            let (fx, fy) = (x - x0, y - y0);
+            let i = y0 as usize * w + x0 as usize;
+            let v = |k: usize| f64::from(deviation[k]);
+            Some(
+                (1.0 - fy) * ((1.0 - fx) * v(i) + fx * v(i + 1))
+                    + fy * ((1.0 - fx) * v(i + w) + fx * v(i + w + 1)),
+            )
+        };
+        let mean = |points: &[[f64; 2]]| {
+            let (mut sum, mut n) = (0.0f64, 0usize);
+            for p in points {
+                if let Some(v) = sample(c[0] + p[0], c[1] + p[1]) {
+                    sum += v;
+                    n += 1;
+                }
+            }
+            if n == 0 { 0.0 } else { sum / n as f64 }
+        };
+        let [ring, inside, outside] = &self.exact;
+        0.5 * (mean(inside) + mean(outside)) - mean(ring)
+    }
+
+    /// Climbs the sub-pixel score from `start` in halving steps, at most
+    /// `reach` binned px (a sphere's own ring is never farther: a climb
+    /// that goes beyond has found a neighbour's, and `start` stands).
+    pub fn refine(
+        &self,
+        start: [f64; 2],
+        reach: f64,
+        [w, h]: [usize; 2],
+        deviation: &[f32],
+    ) -> [f64; 2] {
+        let mut c = start;
+        let mut best = self.at_exact(c, w, h, deviation);
+        let mut step = 0.5;
+        while step >= 1.0 / 32.0 {
+            let mut moved = false;
+            for d in [[step, 0.0], [-step, 0.0], [0.0, step], [0.0, -step]] {
+                let q = [c[0] + d[0], c[1] + d[1]];
+                let score = self.at_exact(q, w, h, deviation);
+                if score > best {
+                    (best, c, moved) = (score, q, true);
+                }
+            }
+            if (c[0] - start[0]).hypot(c[1] - start[1]) > reach {
+                return start;
+            }
+            if !moved {
+                step /= 2.0;
+            }
+        }
+        c
     }
 
     /// Centres (binned px) of at most `k` spheres in the blob made of the
@@ -106,22 +174,7 @@ impl RingScore {
         }
         peaks
             .into_iter()
-            .map(|(x, y)| {
-                let s = |dx: i64, dy: i64| self.at(x + dx, y + dy, w, h, deviation);
-                let centre = s(0, 0);
-                let vertex = |minus: f64, plus: f64| {
-                    let curvature = minus - 2.0 * centre + plus;
-                    if curvature < 0.0 {
-                        (0.5 * (minus - plus) / curvature).clamp(-0.5, 0.5)
-                    } else {
-                        0.0
-                    }
-                };
-                [
-                    x as f64 + vertex(s(-1, 0), s(1, 0)),
-                    y as f64 + vertex(s(0, -1), s(0, 1)),
-                ]
-            })
+            .map(|(x, y)| self.refine([x as f64, y as f64], 1.0, [w, h], deviation))
             .collect()
     }
 }
