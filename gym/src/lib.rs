@@ -35,7 +35,7 @@ pub use eval::{EvalSummary, evaluate};
 pub use observation::{Observation, ObservationBounds, ObservationError};
 pub use policy::{Greedy, Policy, UniformRandom};
 #[cfg(feature = "cli")]
-pub use process::{init_logging, stop_signal};
+pub use process::{init_logging, parse_pair, stop_signal};
 pub use render::{Frame, Pixel, Renderer, SizeMismatch};
 pub use rng::SplitMix64;
 pub use seeds::{Seeds, SeedsError};

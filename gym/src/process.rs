@@ -1,4 +1,5 @@
-//! What every process binary shares: logging and the signals that stop it.
+//! What every process binary shares: logging, the signals that stop it,
+//! and argument parsers.
 
 use tracing_subscriber::EnvFilter;
 
@@ -36,5 +37,40 @@ pub async fn stop_signal() -> &'static str {
     {
         let _ = tokio::signal::ctrl_c().await;
         "Ctrl-C"
+    }
+}
+
+/// Parses "X,Y" into two finite numbers (a clap value parser).
+pub fn parse_pair(text: &str) -> Result<[f64; 2], String> {
+    let parse = |p: &str| {
+        p.trim()
+            .parse::<f64>()
+            .ok()
+            .filter(|v| v.is_finite())
+            .ok_or_else(|| format!("{p:?} is not a finite number"))
+    };
+    match text.split(',').collect::<Vec<_>>().as_slice() {
+        [x, y] => Ok([parse(x)?, parse(y)?]),
+        _ => Err(format!("{text:?}: expected two numbers, X,Y")),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::parse_pair;
+
+    #[test]
+    fn pairs_parse_and_bad_ones_are_named() {
+        assert_eq!(parse_pair("1.5, -2"), Ok([1.5, -2.0]));
+        assert!(
+            parse_pair("1")
+                .unwrap_err()
+                .contains("expected two numbers")
+        );
+        assert!(
+            parse_pair("1,inf")
+                .unwrap_err()
+                .contains("\"inf\" is not a finite number")
+        );
     }
 }

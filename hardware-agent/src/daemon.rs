@@ -55,6 +55,15 @@ pub fn serve(config: AgentConfig, twin: bool, greedy: bool, json_logs: bool) -> 
         tracing::info!(%addr, twin, "hardware agent serving");
         println!("hardware-agent listening on {addr}");
         let service = AgentService::new(shared.clone(), jobs.clone());
+        let (health, health_service) = tonic_health::server::health_reporter();
+        health
+            .set_serving::<HardwareAgentServer<AgentService>>()
+            .await;
+        let reflection = tonic_reflection::server::Builder::configure()
+            .register_encoded_file_descriptor_set(tweezer_proto::FILE_DESCRIPTOR_SET)
+            .register_encoded_file_descriptor_set(tonic_health::pb::FILE_DESCRIPTOR_SET)
+            .build_v1()
+            .context("gRPC reflection")?;
         let (stopping, mut stopped) = tokio::sync::watch::channel(false);
         let shutdown = async move {
             let signal = stop_signal().await;
@@ -65,6 +74,8 @@ pub fn serve(config: AgentConfig, twin: bool, greedy: bool, json_logs: bool) -> 
             let _ = stopping.send(true);
         };
         let server = tonic::transport::Server::builder()
+            .add_service(health_service)
+            .add_service(reflection)
             .add_service(HardwareAgentServer::new(service))
             .serve_with_incoming_shutdown(TcpListenerStream::new(listener), shutdown);
         // Clients get a grace period to hang up; a telemetry subscriber

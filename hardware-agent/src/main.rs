@@ -45,7 +45,7 @@ enum Command {
         seed: u64,
         /// Target relative to the trap, µm along the image axes (required
         /// on the instrument).
-        #[arg(long, value_name = "DX,DY", value_parser = parse_pair, allow_hyphen_values = true)]
+        #[arg(long, value_name = "DX,DY", value_parser = tweezer_gym::parse_pair, allow_hyphen_values = true)]
         target_um: Option<[f64; 2]>,
         /// Drive with the greedy baseline instead of the configured policy.
         #[arg(long, conflicts_with = "snapshot")]
@@ -102,8 +102,10 @@ enum Command {
         #[arg(long, value_name = "FILE")]
         snapshot: Option<PathBuf>,
         /// Control rate on the twin, Hz (overrides `control.rate_hz`: the
-        /// twin keeps up with faster rates than the stages allow).
-        #[arg(long, default_value_t = 20.0)]
+        /// twin keeps up with faster rates than the stages' 4 Hz; much
+        /// faster, and their finite acceleration no longer takes up the
+        /// backlash within a step).
+        #[arg(long, default_value_t = 10.0)]
         rate: f64,
         /// One JSON object instead of a table.
         #[arg(long)]
@@ -194,21 +196,5 @@ impl LoopOverrides {
             config.records.dir = records;
         }
         Ok(config.validate()?)
-    }
-}
-
-/// Parses "X,Y" into two finite numbers.
-fn parse_pair(text: &str) -> Result<[f64; 2], String> {
-    let parts: Vec<&str> = text.split(',').collect();
-    let parse = |p: &str| {
-        p.trim()
-            .parse::<f64>()
-            .ok()
-            .filter(|v| v.is_finite())
-            .ok_or_else(|| format!("{p:?} is not a finite number"))
-    };
-    match parts.as_slice() {
-        [x, y] => Ok([parse(x)?, parse(y)?]),
-        _ => Err(format!("{text:?}: expected two numbers, DX,DY")),
     }
 }

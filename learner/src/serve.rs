@@ -97,8 +97,14 @@ pub fn serve(file: LearnerFile, resume: bool) -> anyhow::Result<()> {
             }
             stopped.stop();
         };
+        let reflection = tonic_reflection::server::Builder::configure()
+            .register_encoded_file_descriptor_set(tweezer_proto::FILE_DESCRIPTOR_SET)
+            .register_encoded_file_descriptor_set(tonic_health::pb::FILE_DESCRIPTOR_SET)
+            .build_v1()
+            .context("gRPC reflection")?;
         let server = tonic::transport::Server::builder()
             .add_service(health_service)
+            .add_service(reflection)
             .add_service(LearnerServer::new(LearnerService::new(shared.clone())))
             .serve_with_incoming_shutdown(TcpListenerStream::new(listener), shutdown);
         // Clients get a grace period to hang up; one that never does (an

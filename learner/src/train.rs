@@ -226,6 +226,10 @@ async fn supervise(
     let logs = out.join(LOGS);
     std::fs::create_dir_all(&logs).with_context(|| format!("cannot create {}", logs.display()))?;
     let (mut learner, addr) = start_learner(out, &logs, resume).await?;
+    tracing::info!(
+        learner = %addr,
+        "learner listening; watch it with `tweezer learner --learner {addr} status --watch 2`"
+    );
     let mut client = LearnerClient::connect(format!("http://{addr}"))
         .await
         .context("cannot connect to the learner")?;

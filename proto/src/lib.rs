@@ -16,6 +16,11 @@ pub use convert::{
 };
 pub use snapshot_download::{DownloadError, download_snapshot};
 
+/// The encoded `FileDescriptorSet` of every proto file, for gRPC server
+/// reflection.
+pub const FILE_DESCRIPTOR_SET: &[u8] =
+    include_bytes!(concat!(env!("OUT_DIR"), "/tweezer_descriptor.bin"));
+
 /// Types and service stubs generated from the proto files.
 #[allow(missing_docs, clippy::all, clippy::pedantic)]
 pub mod pb {

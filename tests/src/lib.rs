@@ -101,20 +101,36 @@ pub fn stderr_of_failure(output: &Output) -> String {
 /// Starts `learner serve` with `args`; returns it, once it listens, and the
 /// address it listens on.
 pub fn start_learner(args: &[&str]) -> (Child, String) {
-    let mut child = Command::new(binary("learner"))
-        .arg("serve")
+    let mut all = vec!["serve"];
+    all.extend_from_slice(args);
+    start_service("learner", &all)
+}
+
+/// Starts `hardware-agent serve --twin --greedy` on a free loopback port
+/// with `args` (`--rate`, `--records`, ...); returns it, once it listens,
+/// and the address it listens on.
+pub fn start_agent(args: &[&str]) -> (Child, String) {
+    let mut all = vec!["serve", "--twin", "--greedy", "--listen", "127.0.0.1:0"];
+    all.extend_from_slice(args);
+    start_service("hardware-agent", &all)
+}
+
+/// Starts binary `bin` with `args`, waits for its first stdout line,
+/// `<bin> listening on ADDR`, and returns it with ADDR.
+fn start_service(bin: &str, args: &[&str]) -> (Child, String) {
+    let mut child = Command::new(binary(bin))
         .args(args)
         .stdout(Stdio::piped())
         .stderr(Stdio::null())
         .spawn()
-        .unwrap_or_else(|e| panic!("cannot start the learner: {e}"));
+        .unwrap_or_else(|e| panic!("cannot start {bin}: {e}"));
     let mut line = String::new();
     BufReader::new(child.stdout.take().expect("stdout is piped"))
         .read_line(&mut line)
-        .expect("the learner writes its address");
+        .unwrap_or_else(|e| panic!("{bin} writes its address: {e}"));
     let addr = line
         .trim()
-        .strip_prefix("learner listening on ")
+        .strip_prefix(&format!("{bin} listening on "))
         .unwrap_or_else(|| panic!("unexpected first line {line:?}"))
         .to_string();
     (child, addr)

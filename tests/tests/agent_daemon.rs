@@ -2,13 +2,16 @@
 //! real socket: status, overlay, episodes, telemetry, emergency stop and
 //! its reset, refusals, and shutdown on SIGTERM.
 
-use std::io::{BufRead, BufReader};
-use std::process::{Child, Command, Stdio};
+use std::process::Child;
 use std::time::{Duration, Instant};
 use tonic::Code;
 use tonic::transport::Channel;
+use tonic_health::pb::HealthCheckRequest;
+use tonic_health::pb::health_check_response::ServingStatus;
+use tonic_health::pb::health_client::HealthClient;
 use tweezer_proto::pb;
 use tweezer_proto::pb::hardware_agent_client::HardwareAgentClient;
+use tweezer_system_tests::{signal, start_agent};
 
 /// The daemon, killed if the test fails before stopping it.
 struct Daemon(Child);
@@ -21,24 +24,7 @@ impl Drop for Daemon {
 }
 
 fn start(records: &std::path::Path) -> (Daemon, String) {
-    let mut child = Command::new(env!("CARGO_BIN_EXE_hardware-agent"))
-        .args(["serve", "--twin", "--greedy", "--listen", "127.0.0.1:0"])
-        .args(["--rate", "20", "--records"])
-        .arg(records)
-        .env("RUST_LOG", "warn")
-        .stdout(Stdio::piped())
-        .stderr(Stdio::inherit())
-        .spawn()
-        .unwrap();
-    let mut line = String::new();
-    BufReader::new(child.stdout.take().unwrap())
-        .read_line(&mut line)
-        .unwrap();
-    let addr = line
-        .trim()
-        .strip_prefix("hardware-agent listening on ")
-        .unwrap_or_else(|| panic!("unexpected first line {line:?}"))
-        .to_string();
+    let (child, addr) = start_agent(&["--rate", "20", "--records", records.to_str().unwrap()]);
     (Daemon(child), format!("http://{addr}"))
 }
 
@@ -66,6 +52,30 @@ async fn wait_for(
     }
 }
 
+/// The services gRPC reflection lists.
+async fn list_services(channel: Channel) -> Vec<String> {
+    use tonic_reflection::pb::v1::ServerReflectionRequest;
+    use tonic_reflection::pb::v1::server_reflection_client::ServerReflectionClient;
+    use tonic_reflection::pb::v1::server_reflection_request::MessageRequest;
+    use tonic_reflection::pb::v1::server_reflection_response::MessageResponse;
+    let request = ServerReflectionRequest {
+        host: String::new(),
+        message_request: Some(MessageRequest::ListServices(String::new())),
+    };
+    let mut replies = ServerReflectionClient::new(channel)
+        .server_reflection_info(tokio_stream::iter([request]))
+        .await
+        .unwrap()
+        .into_inner();
+    let reply = replies.message().await.unwrap().unwrap();
+    match reply.message_response {
+        Some(MessageResponse::ListServicesResponse(list)) => {
+            list.service.into_iter().map(|s| s.name).collect()
+        }
+        other => panic!("unexpected reflection reply {other:?}"),
+    }
+}
+
 fn seeded(seed: u64) -> pb::StartEpisodeRequest {
     pb::StartEpisodeRequest {
         target: None,
@@ -77,10 +87,30 @@ fn seeded(seed: u64) -> pb::StartEpisodeRequest {
 async fn the_daemon_runs_episodes_stops_them_and_refuses_what_it_must() {
     let dir = tempfile::tempdir().unwrap();
     let (mut daemon, addr) = start(dir.path());
-    let mut client = HardwareAgentClient::connect(addr).await.unwrap();
+    let mut client = HardwareAgentClient::connect(addr.clone()).await.unwrap();
 
     let status = wait_for(&mut client, pb::AgentState::Idle, Duration::from_secs(5)).await;
     assert_eq!(status.policy, "greedy baseline");
+
+    // The standard services: health and reflection.
+    let channel = Channel::from_shared(addr.clone())
+        .unwrap()
+        .connect()
+        .await
+        .unwrap();
+    let health = HealthClient::new(channel.clone())
+        .check(HealthCheckRequest {
+            service: "tweezer.v1.HardwareAgent".into(),
+        })
+        .await
+        .unwrap()
+        .into_inner();
+    assert_eq!(health.status, ServingStatus::Serving as i32);
+    let services = list_services(channel).await;
+    assert!(
+        services.contains(&"tweezer.v1.HardwareAgent".to_string()),
+        "{services:?}"
+    );
 
     // Bad requests are named and change nothing.
     let far = pb::StartEpisodeRequest {
@@ -208,11 +238,7 @@ async fn the_daemon_runs_episodes_stops_them_and_refuses_what_it_must() {
     assert_eq!(state(&status), pb::AgentState::Idle);
 
     // SIGTERM ends the daemon cleanly.
-    nix::sys::signal::kill(
-        nix::unistd::Pid::from_raw(daemon.0.id() as i32),
-        nix::sys::signal::Signal::SIGTERM,
-    )
-    .unwrap();
+    signal(&daemon.0, "TERM");
     let deadline = Instant::now() + Duration::from_secs(10);
     let exit = loop {
         if let Some(exit) = daemon.0.try_wait().unwrap() {

@@ -1,0 +1,107 @@
+//! The operator CLI, `tweezer`, against a real learner and a real hardware
+//! agent on its twin: status as JSON, a snapshot download, and the agent's
+//! control (episode, emergency stop, reset); errors name what to fix.
+
+use serde_json::Value;
+use tweezer_system_tests::{
+    TINY_ENV, run, start_agent, start_learner, stderr_of_failure, stdout_of, stop, write,
+};
+
+fn json(out: &str) -> Value {
+    serde_json::from_str(out.lines().last().expect("a line of output")).unwrap()
+}
+
+fn tweezer(args: &[&str]) -> std::process::Output {
+    run("tweezer", args)
+}
+
+#[test]
+fn the_cli_reads_the_learner_and_drives_the_agent() {
+    let dir = tempfile::tempdir().unwrap();
+    let config = write(
+        &dir.path().join("learner.toml"),
+        &format!("{TINY_ENV}\n[learner]\nlisten = \"127.0.0.1:0\"\n"),
+    );
+    let run_dir = dir.path().join("run");
+    let (learner, addr) =
+        start_learner(&["--config", &config, "--run-dir", run_dir.to_str().unwrap()]);
+
+    let status = json(&stdout_of(&tweezer(&[
+        "--json",
+        "learner",
+        "--learner",
+        &addr,
+        "status",
+    ])));
+    assert_eq!(status["steps_inserted"], 0);
+    assert!(status["buffer_capacity"].as_u64().unwrap() > 0);
+    let latest = status["latest_snapshot"].as_u64().unwrap();
+    assert!(latest >= 1, "{status}");
+    let table = stdout_of(&tweezer(&["learner", "--learner", &addr, "status"]));
+    assert!(
+        table.lines().any(|l| l.starts_with("limiter_state")),
+        "{table}"
+    );
+
+    let file = dir.path().join("latest.safetensors");
+    let download = json(&stdout_of(&tweezer(&[
+        "--json",
+        "learner",
+        "--learner",
+        &addr,
+        "download",
+        "latest",
+        "--out",
+        file.to_str().unwrap(),
+    ])));
+    assert_eq!(download["version"].as_u64().unwrap(), latest);
+    assert_eq!(
+        download["size_bytes"].as_u64().unwrap(),
+        std::fs::metadata(&file).unwrap().len()
+    );
+    let err = stderr_of_failure(&tweezer(&[
+        "learner",
+        "--learner",
+        &addr,
+        "download",
+        "999",
+        "-o",
+        "x",
+    ]));
+    assert!(err.contains("not kept"), "{err}");
+    assert!(stop(learner).0.success());
+
+    let records = dir.path().join("records");
+    let (mut agent, agent_addr) =
+        start_agent(&["--rate", "20", "--records", records.to_str().unwrap()]);
+    let ctl = |args: &[&str]| {
+        let mut all = vec!["--json", "agent", "--agent", agent_addr.as_str()];
+        all.extend_from_slice(args);
+        tweezer(&all)
+    };
+    let status = json(&stdout_of(&ctl(&["status"])));
+    assert_eq!(status["state"], "idle");
+    assert_eq!(status["policy"], "greedy baseline");
+    let done = json(&stdout_of(&ctl(&["start", "--twin-seed", "1", "--wait"])));
+    assert_eq!(done["last_outcome"], "success", "{done}");
+    assert_eq!(done["episode"], 1);
+    let stopped = json(&stdout_of(&ctl(&["estop", "--reason", "cli test"])));
+    assert_eq!(stopped["state"], "emergency_stopped");
+    let err = stderr_of_failure(&ctl(&["start", "--target-um", "10,0"]));
+    assert!(
+        err.contains("emergency stop") && err.contains("not in a state"),
+        "{err}"
+    );
+    let reset = json(&stdout_of(&ctl(&["reset"])));
+    assert_eq!(reset["state"], "idle");
+    let _ = agent.kill();
+    let _ = agent.wait();
+
+    // Nothing listening: the error names the address and the option.
+    let err = stderr_of_failure(&tweezer(&["agent", "--agent", "127.0.0.1:1", "status"]));
+    assert!(
+        err.contains("cannot reach the hardware agent at http://127.0.0.1:1"),
+        "{err}"
+    );
+    assert!(err.contains("--agent"), "{err}");
+}
