@@ -73,6 +73,18 @@ pub fn learner(s: &pb::LearnerStatus) -> Fields {
     ]
 }
 
+/// A snapshot's metadata.
+pub fn snapshot(info: &pb::SnapshotInfo) -> Fields {
+    vec![
+        ("version", json!(info.version)),
+        ("training_step", json!(info.training_step)),
+        ("size_bytes", json!(info.size_bytes)),
+        ("sha256", json!(info.sha256)),
+        ("architecture", json!(info.architecture)),
+        ("image", json!([info.image_width, info.image_height])),
+    ]
+}
+
 /// The hardware agent's status.
 pub fn agent(s: &pb::AgentStatus) -> Fields {
     let state = pb::AgentState::try_from(s.state).map_or_else(

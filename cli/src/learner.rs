@@ -27,6 +27,27 @@ pub async fn run(address: &str, command: LearnerCommand, json: bool) -> anyhow::
             })
             .await
         }
+        LearnerCommand::Snapshots => {
+            let list = client
+                .list_snapshots(pb::ListSnapshotsRequest {})
+                .await
+                .map_err(|e| call_error("ListSnapshots", e))?
+                .into_inner();
+            for (k, info) in list.snapshots.iter().enumerate() {
+                if k > 0 && !json {
+                    println!();
+                }
+                let tags: Vec<&str> = [("latest", list.latest), ("best", list.best)]
+                    .into_iter()
+                    .filter(|&(_, v)| v == info.version)
+                    .map(|(tag, _)| tag)
+                    .collect();
+                let mut row = fields::snapshot(info);
+                row.push(("tags", serde_json::json!(tags.join(","))));
+                fields::print(&row, json);
+            }
+            Ok(())
+        }
         LearnerCommand::Download { snapshot, out } => {
             let selector = match snapshot.as_str() {
                 "best" => Selector::Tag(pb::SnapshotTag::Best.into()),
@@ -44,19 +65,9 @@ pub async fn run(address: &str, command: LearnerCommand, json: bool) -> anyhow::
                     })?;
             std::fs::write(&out, &bytes)
                 .with_context(|| format!("cannot write {}", out.display()))?;
-            let fields = vec![
-                ("file", serde_json::json!(out.display().to_string())),
-                ("version", serde_json::json!(info.version)),
-                ("training_step", serde_json::json!(info.training_step)),
-                ("size_bytes", serde_json::json!(info.size_bytes)),
-                ("sha256", serde_json::json!(info.sha256)),
-                ("architecture", serde_json::json!(info.architecture)),
-                (
-                    "image",
-                    serde_json::json!([info.image_width, info.image_height]),
-                ),
-            ];
-            fields::print(&fields, json);
+            let mut row = vec![("file", serde_json::json!(out.display().to_string()))];
+            row.extend(fields::snapshot(&info));
+            fields::print(&row, json);
             Ok(())
         }
     }

@@ -53,6 +53,8 @@ pub enum LearnerCommand {
         #[arg(long, value_name = "SECS")]
         watch: Option<f64>,
     },
+    /// The snapshots the learner keeps, with their metadata and checksums.
+    Snapshots,
     /// Download a policy snapshot (checked against its size and SHA-256).
     Download {
         /// "best", "latest" or a version number.

@@ -3,7 +3,7 @@
 //! status. Wire types stop here: the rest of the learner sees domain types.
 
 use crate::shared::Shared;
-use crate::snapshots::{Selector, SnapshotsError};
+use crate::snapshots::{Published, Selector, SnapshotsError};
 use std::pin::Pin;
 use std::sync::Arc;
 use tokio_stream::Stream;
@@ -122,15 +122,7 @@ impl Learner for LearnerService {
         })
         .await
         .map_err(|e| Status::internal(e.to_string()))??;
-        let info = pb::SnapshotInfo {
-            version: published.info.version,
-            training_step: published.info.training_step,
-            size_bytes: published.bytes.len() as u64,
-            sha256: published.sha256.clone(),
-            architecture: published.info.architecture.clone(),
-            image_width: published.info.width as u32,
-            image_height: published.info.height as u32,
-        };
+        let info = info_to_wire(&published);
         let chunks = (0..published.bytes.len().div_ceil(CHUNK_BYTES).max(1)).map(move |i| {
             let start = i * CHUNK_BYTES;
             let end = (start + CHUNK_BYTES).min(published.bytes.len());
@@ -141,6 +133,43 @@ impl Learner for LearnerService {
             })
         });
         Ok(Response::new(Box::pin(tokio_stream::iter(chunks))))
+    }
+
+    async fn list_snapshots(
+        &self,
+        _request: Request<pb::ListSnapshotsRequest>,
+    ) -> Result<Response<pb::SnapshotList>, Status> {
+        let shared = self.shared.clone();
+        let list = tokio::task::spawn_blocking(move || {
+            let missing =
+                || Status::not_found("this learner publishes no snapshots (it is not training)");
+            let (kept, latest, best) = {
+                let store = shared.snapshots().ok_or_else(missing)?;
+                (
+                    store.state().kept,
+                    store.latest_version(),
+                    store.best_version(),
+                )
+            };
+            let mut snapshots = Vec::with_capacity(kept.len());
+            for version in kept {
+                let store = shared.snapshots().ok_or_else(missing)?;
+                match store.get(Selector::Version(version)) {
+                    Ok(published) => snapshots.push(info_to_wire(&published)),
+                    // Pruned since the list was taken.
+                    Err(SnapshotsError::NotFound(_)) => {}
+                    Err(e) => return Err(Status::from(e)),
+                }
+            }
+            Ok(pb::SnapshotList {
+                snapshots,
+                latest,
+                best,
+            })
+        })
+        .await
+        .map_err(|e| Status::internal(e.to_string()))??;
+        Ok(Response::new(list))
     }
 
     async fn get_status(
@@ -181,5 +210,18 @@ impl Learner for LearnerService {
             duplicate_batches: s.duplicates(),
             explore_uniformly: s.explore_uniformly(),
         }))
+    }
+}
+
+/// A published snapshot's metadata on the wire.
+fn info_to_wire(published: &Published) -> pb::SnapshotInfo {
+    pb::SnapshotInfo {
+        version: published.info.version,
+        training_step: published.info.training_step,
+        size_bytes: published.bytes.len() as u64,
+        sha256: published.sha256.clone(),
+        architecture: published.info.architecture.clone(),
+        image_width: published.info.width as u32,
+        image_height: published.info.height as u32,
     }
 }

@@ -43,6 +43,25 @@ fn the_cli_reads_the_learner_and_drives_the_agent() {
         "{table}"
     );
 
+    let listed = stdout_of(&tweezer(&[
+        "--json",
+        "learner",
+        "--learner",
+        &addr,
+        "snapshots",
+    ]));
+    let rows: Vec<Value> = listed
+        .lines()
+        .map(|l| serde_json::from_str(l).unwrap())
+        .collect();
+    let newest = rows.last().expect("the learner keeps its first snapshot");
+    assert_eq!(newest["version"].as_u64().unwrap(), latest, "{listed}");
+    assert!(
+        newest["tags"].as_str().unwrap().contains("latest"),
+        "{listed}"
+    );
+    assert_eq!(newest["sha256"].as_str().unwrap().len(), 64);
+
     let file = dir.path().join("latest.safetensors");
     let download = json(&stdout_of(&tweezer(&[
         "--json",
@@ -55,6 +74,7 @@ fn the_cli_reads_the_learner_and_drives_the_agent() {
         file.to_str().unwrap(),
     ])));
     assert_eq!(download["version"].as_u64().unwrap(), latest);
+    assert_eq!(download["sha256"], newest["sha256"]);
     assert_eq!(
         download["size_bytes"].as_u64().unwrap(),
         std::fs::metadata(&file).unwrap().len()
