@@ -57,6 +57,7 @@ pub fn learner(s: &pb::LearnerStatus) -> Fields {
         ("buffer_fill", json!(fill)),
         ("insert_rate", json!(s.insert_rate)),
         ("sample_rate", json!(s.sample_rate)),
+        ("paused", json!(s.paused)),
         ("limiter_state", json!(s.limiter_state)),
         ("explore_uniformly", json!(s.explore_uniformly)),
         ("connected_actors", json!(s.connected_actors)),

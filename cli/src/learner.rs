@@ -27,6 +27,33 @@ pub async fn run(address: &str, command: LearnerCommand, json: bool) -> anyhow::
             })
             .await
         }
+        LearnerCommand::Pause => {
+            let status = client
+                .pause_learning(pb::PauseLearningRequest {})
+                .await
+                .map_err(|e| call_error("PauseLearning", e))?
+                .into_inner();
+            fields::print(&fields::learner(&status), json);
+            Ok(())
+        }
+        LearnerCommand::Resume => {
+            let status = client
+                .resume_learning(pb::ResumeLearningRequest {})
+                .await
+                .map_err(|e| call_error("ResumeLearning", e))?
+                .into_inner();
+            fields::print(&fields::learner(&status), json);
+            Ok(())
+        }
+        LearnerCommand::Checkpoint => {
+            let reply = client
+                .checkpoint(pb::CheckpointRequest {})
+                .await
+                .map_err(|e| call_error("Checkpoint", e))?
+                .into_inner();
+            fields::print(&vec![("checkpoint", serde_json::json!(reply.path))], json);
+            Ok(())
+        }
         LearnerCommand::Snapshots => {
             let list = client
                 .list_snapshots(pb::ListSnapshotsRequest {})

@@ -55,6 +55,12 @@ pub enum LearnerCommand {
     },
     /// The snapshots the learner keeps, with their metadata and checksums.
     Snapshots,
+    /// Stop updating the networks (actors are held back meanwhile).
+    Pause,
+    /// Update the networks again.
+    Resume,
+    /// Write a checkpoint now and print its path.
+    Checkpoint,
     /// Download a policy snapshot (checked against its size and SHA-256).
     Download {
         /// "best", "latest" or a version number.

@@ -176,6 +176,62 @@ impl Learner for LearnerService {
         &self,
         _request: Request<pb::LearnerStatusRequest>,
     ) -> Result<Response<pb::LearnerStatus>, Status> {
+        Ok(Response::new(self.status()))
+    }
+
+    async fn pause_learning(
+        &self,
+        _request: Request<pb::PauseLearningRequest>,
+    ) -> Result<Response<pb::LearnerStatus>, Status> {
+        self.training_only()?;
+        self.shared.set_paused(true);
+        tracing::info!("learning paused by an operator");
+        Ok(Response::new(self.status()))
+    }
+
+    async fn resume_learning(
+        &self,
+        _request: Request<pb::ResumeLearningRequest>,
+    ) -> Result<Response<pb::LearnerStatus>, Status> {
+        self.training_only()?;
+        self.shared.set_paused(false);
+        tracing::info!("learning resumed by an operator");
+        Ok(Response::new(self.status()))
+    }
+
+    async fn checkpoint(
+        &self,
+        _request: Request<pb::CheckpointRequest>,
+    ) -> Result<Response<pb::CheckpointReply>, Status> {
+        self.training_only()?;
+        let mut written = self.shared.request_checkpoint();
+        tokio::time::timeout(CHECKPOINT_WAIT, written.changed())
+            .await
+            .map_err(|_| Status::deadline_exceeded("no checkpoint was written within two minutes"))?
+            .map_err(|_| Status::unavailable("the learner is shutting down"))?;
+        let path = written.borrow().clone().unwrap_or_default();
+        Ok(Response::new(pb::CheckpointReply {
+            path: path.display().to_string(),
+        }))
+    }
+}
+
+/// How long Checkpoint waits for the trainer.
+const CHECKPOINT_WAIT: std::time::Duration = std::time::Duration::from_secs(120);
+
+impl LearnerService {
+    /// Refuses calls that need a trainer on a learner without one.
+    fn training_only(&self) -> Result<(), Status> {
+        if self.shared.snapshots().is_none() {
+            return Err(Status::failed_precondition(
+                "this learner does not train (it only ingests)",
+            ));
+        }
+        Ok(())
+    }
+
+    /// The status on the wire.
+    fn status(&self) -> pb::LearnerStatus {
         let s = &self.shared;
         let (len, capacity) = {
             let replay = s.replay();
@@ -189,7 +245,7 @@ impl Learner for LearnerService {
         let (latest_snapshot, best_snapshot) = s
             .snapshots()
             .map_or((0, 0), |s| (s.latest_version(), s.best_version()));
-        Ok(Response::new(pb::LearnerStatus {
+        pb::LearnerStatus {
             steps_inserted: s.steps_inserted(),
             updates: training.updates,
             buffer_size: len as u64,
@@ -209,7 +265,8 @@ impl Learner for LearnerService {
             malformed_batches: s.malformed(),
             duplicate_batches: s.duplicates(),
             explore_uniformly: s.explore_uniformly(),
-        }))
+            paused: s.paused(),
+        }
     }
 }
 

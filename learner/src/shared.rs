@@ -9,7 +9,7 @@ use crate::metrics::Metrics;
 use crate::replay::{Replay, Source};
 use crate::snapshots::Snapshots;
 use std::collections::{BTreeMap, HashMap};
-use std::sync::atomic::{AtomicU32, AtomicU64, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU32, AtomicU64, Ordering};
 use std::sync::{Mutex, MutexGuard};
 use std::time::Duration;
 use tonic::Status;
@@ -72,6 +72,13 @@ pub struct Shared {
     training: Mutex<TrainingStatus>,
     metrics: Metrics,
     stopping: tokio::sync::watch::Sender<bool>,
+    /// An operator paused learning (updates stop; the limiter then holds
+    /// actors back).
+    paused: AtomicBool,
+    /// An operator asked for a checkpoint now.
+    checkpoint_wanted: AtomicBool,
+    /// The newest checkpoint written, announced to whoever waits for one.
+    checkpoints: tokio::sync::watch::Sender<Option<std::path::PathBuf>>,
 }
 
 fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
@@ -97,6 +104,9 @@ impl Shared {
             training: Mutex::new(TrainingStatus::default()),
             metrics: Metrics::discard(),
             stopping: tokio::sync::watch::Sender::new(false),
+            paused: AtomicBool::new(false),
+            checkpoint_wanted: AtomicBool::new(false),
+            checkpoints: tokio::sync::watch::Sender::new(None),
         }
     }
 
@@ -216,6 +226,34 @@ impl Shared {
     /// shutting down.
     pub fn stop(&self) {
         self.stopping.send_replace(true);
+    }
+
+    /// Pauses or resumes learning.
+    pub fn set_paused(&self, paused: bool) {
+        self.paused.store(paused, Ordering::SeqCst);
+    }
+
+    /// Whether an operator paused learning.
+    pub fn paused(&self) -> bool {
+        self.paused.load(Ordering::SeqCst)
+    }
+
+    /// Asks the trainer for a checkpoint now; the receiver sees it written.
+    pub fn request_checkpoint(&self) -> tokio::sync::watch::Receiver<Option<std::path::PathBuf>> {
+        let mut written = self.checkpoints.subscribe();
+        written.mark_unchanged();
+        self.checkpoint_wanted.store(true, Ordering::SeqCst);
+        written
+    }
+
+    /// Whether a checkpoint was asked for (the request is taken).
+    pub fn take_checkpoint_request(&self) -> bool {
+        self.checkpoint_wanted.swap(false, Ordering::SeqCst)
+    }
+
+    /// Announces a written checkpoint.
+    pub fn checkpoint_written(&self, path: std::path::PathBuf) {
+        self.checkpoints.send_replace(Some(path));
     }
 
     /// Whether [`Self::stop`] was called.

@@ -131,6 +131,13 @@ impl Trainer {
         let config = self.file.learner.clone();
         let every_checkpoint = Duration::from_secs_f64(config.checkpoints.every_seconds);
         while !self.shared.stopping() {
+            if self.shared.take_checkpoint_request() {
+                self.checkpoint()?;
+            }
+            if self.shared.paused() {
+                std::thread::sleep(Duration::from_millis(20));
+                continue;
+            }
             let may_update = self
                 .shared
                 .limiter()
@@ -314,6 +321,7 @@ impl Trainer {
         }
         let path = self.checkpoints.write(header, &parts)?;
         self.last_checkpoint = Instant::now();
+        self.shared.checkpoint_written(path.clone());
         let seconds = started.elapsed().as_secs_f64();
         tracing::info!(path = %path.display(), seconds, "checkpoint written");
         #[derive(Serialize)]

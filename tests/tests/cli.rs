@@ -37,6 +37,34 @@ fn the_cli_reads_the_learner_and_drives_the_agent() {
     assert!(status["buffer_capacity"].as_u64().unwrap() > 0);
     let latest = status["latest_snapshot"].as_u64().unwrap();
     assert!(latest >= 1, "{status}");
+    let paused = json(&stdout_of(&tweezer(&[
+        "--json",
+        "learner",
+        "--learner",
+        &addr,
+        "pause",
+    ])));
+    assert_eq!(paused["paused"], true);
+    let written = json(&stdout_of(&tweezer(&[
+        "--json",
+        "learner",
+        "--learner",
+        &addr,
+        "checkpoint",
+    ])));
+    let checkpoint = std::path::PathBuf::from(written["checkpoint"].as_str().unwrap());
+    assert!(
+        checkpoint.starts_with(&run_dir) && checkpoint.is_file(),
+        "{written}"
+    );
+    let resumed = json(&stdout_of(&tweezer(&[
+        "--json",
+        "learner",
+        "--learner",
+        &addr,
+        "resume",
+    ])));
+    assert_eq!(resumed["paused"], false);
     let table = stdout_of(&tweezer(&["learner", "--learner", &addr, "status"]));
     assert!(
         table.lines().any(|l| l.starts_with("limiter_state")),
