@@ -6,7 +6,7 @@ use serde::Serialize;
 use std::path::Path;
 use tweezer_gym::{Outcome, evaluate};
 use tweezer_hardware_agent::config::AgentConfig;
-use tweezer_hardware_agent::control::{Ending, Halt};
+use tweezer_hardware_agent::control::{Ending, Halt, LoopTiming};
 use tweezer_hardware_agent::instrument::Instrument;
 use tweezer_hardware_agent::policy_source::LoadedPolicy;
 use tweezer_hardware_agent::record::EpisodeHeader;
@@ -120,13 +120,8 @@ pub fn compare(
         .zip(&twin_outcomes)
         .filter(|(v, t)| Some(**v) == **t)
         .count();
-    latencies.sort_by(f64::total_cmp);
-    let at = |q: f64| {
-        latencies
-            .get(((latencies.len().max(1) - 1) as f64 * q).round() as usize)
-            .copied()
-            .unwrap_or(f64::NAN)
-    };
+    // Pooled over every episode; LoopTiming's percentiles, its period unused.
+    let timing = LoopTiming::of(&mut latencies, 0.0, 0);
     Ok(Comparison {
         policy: policy.description,
         episodes: n,
@@ -135,8 +130,8 @@ pub fn compare(
         twin_rates,
         same_outcome: same as f64 / n.max(1) as f64,
         judged_right: judged_right as f64 / n.max(1) as f64,
-        loop_ms_median: at(0.5),
-        loop_ms_p99: at(0.99),
+        loop_ms_median: timing.latency_ms_median,
+        loop_ms_p99: timing.latency_ms_p99,
         position_error_px: position_error / n.max(1) as f64,
     })
 }

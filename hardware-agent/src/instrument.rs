@@ -66,7 +66,6 @@ fn fail(what: &str) -> impl Fn(&dyn std::fmt::Display) -> InstrumentError + '_ {
 #[derive(Debug)]
 pub struct Instrument {
     rig: Rig<InstrumentCamera, TTYPort>,
-    overlay: Overlay,
     /// The twin's stages, when this is the twin (they live as long as the
     /// instrument).
     twin: Option<Arc<TwinStages>>,
@@ -118,12 +117,11 @@ impl Instrument {
             segmenter,
             config.env.clone(),
             config.control.clone(),
-            overlay.clone(),
+            overlay,
         )
         .map_err(|e| fail("rig")(&e))?;
         Ok(Self {
             rig,
-            overlay,
             twin,
             config: config.clone(),
         })
@@ -157,14 +155,13 @@ impl Instrument {
     pub fn set_overlay(&mut self, spec: &OverlaySpec) -> Result<(), InstrumentError> {
         let travel = self.rig.stages().travel_px();
         let overlay = Self::build_overlay(&self.config, spec, travel)?;
-        self.rig.set_overlay(overlay.clone());
-        self.overlay = overlay;
+        self.rig.set_overlay(overlay);
         Ok(())
     }
 
     /// Virtual obstacle discs in the overlay (keep-out walls aside).
     pub fn overlay_len(&self) -> usize {
-        self.overlay.discs().len()
+        self.rig.overlay().discs().len()
     }
 
     /// The rig.
@@ -231,7 +228,7 @@ impl Instrument {
             },
         );
         let files = recorder
-            .finish(&summary, self.overlay.discs())
+            .finish(&summary, self.rig.overlay().discs())
             .map_err(|e| fail("records")(&e))?;
         Ok((summary, files))
     }

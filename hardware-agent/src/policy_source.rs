@@ -114,6 +114,17 @@ impl PolicyConfig {
     }
 }
 
+/// A policy to load, as an operator names it.
+#[derive(Clone, Debug, PartialEq)]
+pub enum PolicyChoice {
+    /// A snapshot of the configured learner.
+    Learner(SnapshotChoice),
+    /// A snapshot file.
+    File(PathBuf),
+    /// The greedy baseline.
+    Greedy,
+}
+
 /// A policy the agent can drive with, and what it is.
 pub struct LoadedPolicy {
     /// The policy.
@@ -167,14 +178,28 @@ impl LoadedPolicy {
     /// Loads the policy `config` names, for observations of `env`.
     pub fn load(config: &PolicyConfig, env: &EnvConfig) -> Result<Self, PolicyError> {
         config.validate().map_err(PolicyError::Config)?;
-        match config.source {
-            PolicyKind::Greedy => Ok(Self::greedy()),
-            PolicyKind::File => Self::from_file(&config.file, env),
-            PolicyKind::Learner => {
-                let choice =
-                    SnapshotChoice::parse(&config.snapshot).map_err(PolicyError::Config)?;
+        let choice = match config.source {
+            PolicyKind::Greedy => PolicyChoice::Greedy,
+            PolicyKind::File => PolicyChoice::File(config.file.clone()),
+            PolicyKind::Learner => PolicyChoice::Learner(
+                SnapshotChoice::parse(&config.snapshot).map_err(PolicyError::Config)?,
+            ),
+        };
+        Self::choose(&choice, config, env)
+    }
+
+    /// Loads `choice`, a learner's snapshot from the learner `config` names.
+    pub fn choose(
+        choice: &PolicyChoice,
+        config: &PolicyConfig,
+        env: &EnvConfig,
+    ) -> Result<Self, PolicyError> {
+        match choice {
+            PolicyChoice::Greedy => Ok(Self::greedy()),
+            PolicyChoice::File(path) => Self::from_file(path, env),
+            PolicyChoice::Learner(snapshot) => {
                 let timeout = Duration::from_secs_f64(config.timeout_s);
-                Self::from_learner(&config.learner, choice, timeout, env)
+                Self::from_learner(&config.learner, *snapshot, timeout, env)
             }
         }
     }
@@ -188,7 +213,7 @@ impl LoadedPolicy {
     }
 
     /// Downloads, verifies and loads a learner's snapshot.
-    pub fn from_learner(
+    fn from_learner(
         address: &str,
         choice: SnapshotChoice,
         timeout: Duration,
@@ -214,22 +239,6 @@ impl LoadedPolicy {
                 .await
                 .map_err(|e| fail(e.to_string()))
         })?;
-        let renderer = Renderer::for_config(env).map_err(|e| PolicyError::Config(e.to_string()))?;
-        if info.architecture != tweezer_nets::ARCHITECTURE
-            || info.image_width as usize != renderer.width()
-            || info.image_height as usize != renderer.height()
-        {
-            return Err(PolicyError::Refused(format!(
-                "the learner's snapshot v{} is a {} network for {}x{} images; this agent runs {} on {}x{}",
-                info.version,
-                info.architecture,
-                info.image_width,
-                info.image_height,
-                tweezer_nets::ARCHITECTURE,
-                renderer.width(),
-                renderer.height()
-            )));
-        }
         Self::from_bytes(
             &bytes,
             env,

@@ -8,7 +8,7 @@ use tweezer_gym::{init_logging, stop_signal};
 use tweezer_hardware_agent::config::AgentConfig;
 use tweezer_hardware_agent::control::{Halt, HaltKind};
 use tweezer_hardware_agent::instrument::Instrument;
-use tweezer_hardware_agent::policy_source::LoadedPolicy;
+use tweezer_hardware_agent::policy_source::{LoadedPolicy, PolicyChoice};
 use tweezer_hardware_agent::record::EpisodeHeader;
 
 /// What `run` was asked for.
@@ -34,12 +34,12 @@ pub fn run(config: &AgentConfig, args: RunArgs) -> anyhow::Result<()> {
     if !args.twin && args.target_um.is_none() {
         bail!("on the instrument, give the target: --target-um DX,DY");
     }
-    let mut policy = if args.greedy {
-        LoadedPolicy::greedy()
-    } else if let Some(file) = &args.snapshot {
-        LoadedPolicy::from_file(file, &config.env)?
-    } else {
-        LoadedPolicy::load(&config.policy, &config.env)?
+    let mut policy = match (args.greedy, args.snapshot) {
+        (true, _) => LoadedPolicy::greedy(),
+        (false, Some(file)) => {
+            LoadedPolicy::choose(&PolicyChoice::File(file), &config.policy, &config.env)?
+        }
+        (false, None) => LoadedPolicy::load(&config.policy, &config.env)?,
     };
     tracing::info!(policy = %policy.description, "policy loaded");
     let mut instrument = Instrument::open(config, args.twin)?;

@@ -98,6 +98,11 @@ impl<C: Camera, P: Read + Write + Send + 'static> Rig<C, P> {
         self.stages.stopper()
     }
 
+    /// The virtual obstacles.
+    pub fn overlay(&self) -> &Overlay {
+        &self.overlay
+    }
+
     /// Replaces the virtual obstacles (between episodes).
     pub fn set_overlay(&mut self, overlay: Overlay) {
         self.overlay = overlay;

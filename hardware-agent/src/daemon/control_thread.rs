@@ -2,7 +2,6 @@
 //! service hands it, one at a time, and keeps the shared status current.
 
 use super::status::{Shared, State};
-use std::path::PathBuf;
 use std::sync::Arc;
 use std::sync::mpsc::{Receiver, Sender, channel};
 use std::thread::JoinHandle;
@@ -13,7 +12,7 @@ use tweezer_hardware_agent::config::AgentConfig;
 use tweezer_hardware_agent::control::{Ending, EpisodeSummary, StepLog};
 use tweezer_hardware_agent::instrument::Instrument;
 use tweezer_hardware_agent::overlay::OverlaySpec;
-use tweezer_hardware_agent::policy_source::{LoadedPolicy, SnapshotChoice};
+use tweezer_hardware_agent::policy_source::{LoadedPolicy, PolicyChoice};
 use tweezer_hardware_agent::record::EpisodeHeader;
 use tweezer_proto::{action_to_wire, observation_to_wire, pb};
 
@@ -24,17 +23,6 @@ pub enum Target {
     RelativeUm([f64; 2]),
     /// Stage positions (X, Y), mm.
     AbsoluteMm([f64; 2]),
-}
-
-/// A policy to load.
-#[derive(Clone, Debug, PartialEq)]
-pub enum PolicyChoice {
-    /// From the configured learner.
-    Learner(SnapshotChoice),
-    /// From a snapshot file.
-    File(PathBuf),
-    /// The greedy baseline.
-    Greedy,
 }
 
 /// Why a job was refused.
@@ -125,17 +113,7 @@ impl ControlThread {
 
     /// Loads a policy; the service has claimed the agent (Loading).
     fn load_policy(&mut self, choice: PolicyChoice) -> Result<(), JobError> {
-        let env = &self.config.env;
-        let loaded = match &choice {
-            PolicyChoice::Greedy => Ok(LoadedPolicy::greedy()),
-            PolicyChoice::File(path) => LoadedPolicy::from_file(path, env),
-            PolicyChoice::Learner(snapshot) => LoadedPolicy::from_learner(
-                &self.config.policy.learner,
-                *snapshot,
-                std::time::Duration::from_secs_f64(self.config.policy.timeout_s),
-                env,
-            ),
-        };
+        let loaded = LoadedPolicy::choose(&choice, &self.config.policy, &self.config.env);
         let mut status = self.shared.status();
         status.state = State::Idle;
         let policy = loaded.map_err(|e| JobError::Invalid(e.to_string()))?;

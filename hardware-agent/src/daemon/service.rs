@@ -1,7 +1,7 @@
 //! The `tweezer.v1.HardwareAgent` gRPC service: wire types in, jobs and
 //! halt requests out, the shared status back as wire types.
 
-use super::control_thread::{Job, JobError, PolicyChoice, Target, ending_to_wire};
+use super::control_thread::{Job, JobError, Target, ending_to_wire};
 use super::status::{Shared, State, Status};
 use std::pin::Pin;
 use std::sync::Arc;
@@ -13,7 +13,7 @@ use tokio_stream::wrappers::ReceiverStream;
 use tonic::{Request, Response, Status as RpcStatus};
 use tweezer_hardware_agent::control::HaltKind;
 use tweezer_hardware_agent::overlay::{MAX_DISCS, OverlaySpec, Wall};
-use tweezer_hardware_agent::policy_source::SnapshotChoice;
+use tweezer_hardware_agent::policy_source::{PolicyChoice, SnapshotChoice};
 use tweezer_proto::pb;
 use tweezer_proto::pb::hardware_agent_server::HardwareAgent;
 
