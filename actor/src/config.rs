@@ -36,7 +36,8 @@ impl ActorFile {
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct ActorConfig {
-    /// The learner's gRPC address.
+    /// The learner's gRPC address: `host:port`, or a URL whose scheme
+    /// matches the security file (https://, or http:// when plaintext).
     pub learner: String,
     /// This actor's identity (letters, digits, `.`, `_`, `-`, `:`).
     pub id: String,
@@ -51,6 +52,9 @@ pub struct ActorConfig {
     pub seed: u64,
     /// Standard deviation of the Gaussian action noise (SPEC §4: 0.1).
     pub noise: f64,
+    /// Address of the Prometheus endpoint (`GET /metrics`; the security
+    /// file then needs a certificate, key and tokens); none unless set.
+    pub metrics_listen: Option<std::net::SocketAddr>,
     /// First wait before reconnecting, ms; doubles up to `reconnect_max_ms`.
     pub reconnect_initial_ms: u64,
     /// Longest wait before reconnecting, ms.
@@ -60,13 +64,14 @@ pub struct ActorConfig {
 impl Default for ActorConfig {
     fn default() -> Self {
         Self {
-            learner: "http://127.0.0.1:50051".into(),
+            learner: "127.0.0.1:50051".into(),
             id: "actor-0".into(),
             envs: 16,
             batch_steps: 256,
             max_unacked: 4,
             seed: 0,
             noise: 0.1,
+            metrics_listen: None,
             reconnect_initial_ms: 100,
             reconnect_max_ms: 10_000,
         }
@@ -82,10 +87,20 @@ impl ActorConfig {
                 reason,
             })
         };
-        if !(self.learner.starts_with("http://") || self.learner.starts_with("https://")) {
+        let host_port = self
+            .learner
+            .strip_prefix("http://")
+            .or_else(|| self.learner.strip_prefix("https://"))
+            .unwrap_or(&self.learner);
+        if self.learner.contains("://") && host_port.len() == self.learner.len()
+            || !host_port.contains(':')
+        {
             return invalid(
                 "learner",
-                format!("`{}` is not an http:// or https:// URL", self.learner),
+                format!(
+                    "`{}` is not `host:port` or an http:// or https:// URL",
+                    self.learner
+                ),
             );
         }
         if let Err(e) = tweezer_proto::check_actor_id(&self.id) {

@@ -3,6 +3,7 @@
 
 mod bench;
 mod config;
+mod exposition;
 mod stream;
 
 use anyhow::bail;
@@ -34,9 +35,13 @@ enum Command {
     /// Stream steps to the learner until SIGINT or SIGTERM (or --steps),
     /// then print a JSON report.
     Run {
-        /// The learner's address instead of `actor.learner`.
-        #[arg(long, value_name = "URL")]
+        /// The learner's address (`host:port`) instead of `actor.learner`.
+        #[arg(long, value_name = "ADDR")]
         learner: Option<String>,
+        /// The security file: the CA that signed the learner's certificate
+        /// and this actor's token (see the README's Security section).
+        #[arg(long, env = tweezer_rpc::SECURITY_ENV, value_name = "FILE")]
+        security: Option<PathBuf>,
         /// This actor's id instead of `actor.id`.
         #[arg(long)]
         id: Option<String>,
@@ -130,8 +135,16 @@ fn main() -> anyhow::Result<()> {
             seed,
             steps,
             log_json,
+            security,
         } => {
             init_logging(log_json);
+            let security = tweezer_rpc::Security::load(security.as_deref())?;
+            let metrics = config
+                .actor
+                .metrics_listen
+                .map(|_| tweezer_rpc::ServerSecurity::load(&security))
+                .transpose()?;
+            let security = tweezer_rpc::ClientSecurity::load(&security)?;
             if let Some(url) = learner {
                 config.actor.learner = url;
             }
@@ -145,7 +158,13 @@ fn main() -> anyhow::Result<()> {
             if steps == Some(0) {
                 bail!("--steps must be at least 1");
             }
-            let report = stream::run(config, steps, Arc::new(AtomicBool::new(false)))?;
+            let report = stream::run(
+                config,
+                security,
+                metrics,
+                steps,
+                Arc::new(AtomicBool::new(false)),
+            )?;
             println!("{}", serde_json::to_string(&report)?);
         }
         Command::Eval {

@@ -16,12 +16,11 @@ use anyhow::Context;
 use burn::tensor::Device;
 use serde::Serialize;
 use std::collections::VecDeque;
-use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::mpsc;
+use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 use tokio::runtime::Runtime;
-use tonic::transport::{Channel, Endpoint};
 use tweezer_gym::{
     Action, Outcome, Policy, Renderer, SplitMix64, UniformRandom, VecEnv, stop_signal,
 };
@@ -29,6 +28,7 @@ use tweezer_nets::NetworkPolicy;
 use tweezer_proto::pb::learner_client::LearnerClient;
 use tweezer_proto::pb::snapshot_request::Selector;
 use tweezer_proto::{download_snapshot, pb, step_to_wire};
+use tweezer_rpc::{AuthChannel, ClientSecurity, Histogram, ServerSecurity, latency_buckets};
 
 /// What a run did, printed as JSON when it ends.
 #[derive(Clone, Debug, Default, Serialize)]
@@ -54,7 +54,7 @@ pub struct RunReport {
 
 /// An open `StreamSteps` call.
 struct Link {
-    client: LearnerClient<Channel>,
+    client: LearnerClient<AuthChannel>,
     batches: tokio::sync::mpsc::Sender<pb::StepBatch>,
     acks: mpsc::Receiver<Result<pb::StepAck, tonic::Status>>,
 }
@@ -82,6 +82,11 @@ impl Backoff {
 /// The actor's state across connections.
 struct Actor {
     file: ActorFile,
+    security: ClientSecurity,
+    /// The report as of the last batch, for the metrics endpoint.
+    published: Arc<Mutex<RunReport>>,
+    /// Seconds to step the environments for one batch.
+    batch_seconds: Histogram,
     runtime: Runtime,
     envs: VecEnv,
     actions: Vec<Action>,
@@ -113,10 +118,14 @@ fn first_sequence() -> u64 {
         .map_or(0, |d| d.as_micros() as u64)
 }
 
-/// Streams until `stop` is set or `steps` steps have been acknowledged;
-/// returns what was done.
+/// Streams until `stop` is set or `steps` steps have been acknowledged,
+/// connecting as `security` says, with Prometheus metrics served as
+/// `metrics` says (when `actor.metrics_listen` is set); returns what was
+/// done.
 pub fn run(
     file: ActorFile,
+    security: ClientSecurity,
+    metrics: Option<ServerSecurity>,
     steps: Option<u64>,
     stop: Arc<AtomicBool>,
 ) -> anyhow::Result<RunReport> {
@@ -150,7 +159,13 @@ pub fn run(
         report: RunReport::default(),
         runtime,
         file,
+        security,
+        published: Arc::new(Mutex::new(RunReport::default())),
+        batch_seconds: Histogram::new(latency_buckets()),
     };
+    if let (Some(listen), Some(metrics)) = (config.metrics_listen, metrics) {
+        actor.serve_metrics(listen, metrics)?;
+    }
     let mut backoff = Backoff {
         initial: Duration::from_millis(config.reconnect_initial_ms),
         max: Duration::from_millis(config.reconnect_max_ms),
@@ -235,6 +250,30 @@ enum Broken {
 }
 
 impl Actor {
+    /// Serves the actor's metrics at `listen` until the process ends.
+    fn serve_metrics(
+        &self,
+        listen: std::net::SocketAddr,
+        security: ServerSecurity,
+    ) -> anyhow::Result<()> {
+        let listener = self
+            .runtime
+            .block_on(tokio::net::TcpListener::bind(listen))
+            .with_context(|| format!("cannot listen on {listen} (actor.metrics_listen)"))?;
+        let addr = listener.local_addr()?;
+        tracing::info!(metrics_addr = %addr, "Prometheus metrics at /metrics");
+        let registry = Arc::new(crate::exposition::prometheus(
+            self.published.clone(),
+            &self.batch_seconds,
+        ));
+        self.runtime.spawn(async move {
+            security
+                .serve_metrics(listener, registry, std::future::pending())
+                .await;
+        });
+        Ok(())
+    }
+
     fn summary(&self) -> RunReport {
         let mut report = self.report.clone();
         let n = report.episodes.max(1) as f64;
@@ -246,18 +285,15 @@ impl Actor {
 
     /// Connects, opens a stream and resends what is unacknowledged.
     fn connect(&mut self) -> anyhow::Result<Link> {
-        let url = self.file.actor.learner.clone();
-        let endpoint = Endpoint::from_shared(url.clone())
-            .with_context(|| format!("learner address `{url}`"))?
-            .connect_timeout(Duration::from_secs(5))
-            .tcp_nodelay(true);
+        let address = self.file.actor.learner.clone();
+        let security = self.security.clone();
         let (batches, receiver) = tokio::sync::mpsc::channel(self.file.actor.max_unacked + 1);
         let (ack_tx, acks) = mpsc::channel();
         let client = self.runtime.block_on(async move {
-            let channel = endpoint
-                .connect()
+            let channel = security
+                .connect(&address, Duration::from_secs(5))
                 .await
-                .with_context(|| format!("cannot connect to {url}"))?;
+                .context("cannot connect to the learner")?;
             let mut client = LearnerClient::new(channel);
             let mut stream = client
                 .stream_steps(tokio_stream::wrappers::ReceiverStream::new(receiver))
@@ -295,6 +331,7 @@ impl Actor {
     fn send_next(&mut self, link: &mut Link) -> Result<(), Broken> {
         self.take_acks(link)?;
         let batch_steps = self.file.actor.batch_steps;
+        let started = Instant::now();
         let mut steps = Vec::with_capacity(batch_steps);
         while steps.len() < batch_steps {
             self.act();
@@ -321,6 +358,8 @@ impl Actor {
         self.steps_sent += batch.steps.len() as u64;
         self.unacked.push_back(batch.clone());
         self.report.batches_sent += 1;
+        self.batch_seconds.observe(started.elapsed().as_secs_f64());
+        *self.published.lock().unwrap_or_else(|p| p.into_inner()) = self.summary();
         link.batches
             .blocking_send(batch)
             .map_err(|_| Broken::Link("the stream closed".into()))

@@ -5,9 +5,10 @@ use crate::connect::{call_error, channel};
 use crate::fields;
 use anyhow::{Context, anyhow};
 use serde::Deserialize;
-use tonic::transport::Channel;
+use std::path::Path;
 use tweezer_proto::pb;
 use tweezer_proto::pb::hardware_agent_client::HardwareAgentClient;
+use tweezer_rpc::AuthChannel;
 
 /// An overlay file, as the hardware agent reads it.
 #[derive(Deserialize)]
@@ -30,7 +31,7 @@ fn vector([x, y]: [f64; 2]) -> pb::Vector2 {
     pb::Vector2 { x, y }
 }
 
-async fn status(client: &mut HardwareAgentClient<Channel>) -> anyhow::Result<pb::AgentStatus> {
+async fn status(client: &mut HardwareAgentClient<AuthChannel>) -> anyhow::Result<pb::AgentStatus> {
     Ok(client
         .get_status(pb::AgentStatusRequest {})
         .await
@@ -38,9 +39,16 @@ async fn status(client: &mut HardwareAgentClient<Channel>) -> anyhow::Result<pb:
         .into_inner())
 }
 
-/// Runs an agent command against the hardware agent at `address`.
-pub async fn run(address: &str, command: AgentCommand, json: bool) -> anyhow::Result<()> {
-    let mut client = HardwareAgentClient::new(channel(address, "hardware agent", "--agent").await?);
+/// Runs an agent command against the hardware agent at `address`,
+/// connecting as the security file `security` says.
+pub async fn run(
+    security: Option<&Path>,
+    address: &str,
+    command: AgentCommand,
+    json: bool,
+) -> anyhow::Result<()> {
+    let mut client =
+        HardwareAgentClient::new(channel(security, address, "hardware agent", "--agent").await?);
     let reply = match command {
         AgentCommand::Status { watch } => {
             return crate::watch::repeat(watch, json, || {

@@ -74,6 +74,18 @@ pub fn learner(s: &pb::LearnerStatus) -> Fields {
     ]
 }
 
+/// An actor's row, as the learner sees it.
+pub fn actor(a: &pb::ActorStatus) -> Fields {
+    vec![
+        ("id", json!(a.id)),
+        ("streams", json!(a.streams)),
+        ("steps", json!(a.steps)),
+        ("episodes", json!(a.episodes)),
+        ("idle_seconds", json!(a.idle_seconds)),
+        ("last_sequence", json!(a.last_sequence)),
+    ]
+}
+
 /// A snapshot's metadata.
 pub fn snapshot(info: &pb::SnapshotInfo) -> Fields {
     vec![

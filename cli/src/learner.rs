@@ -4,13 +4,20 @@ use crate::LearnerCommand;
 use crate::connect::{call_error, channel};
 use crate::fields;
 use anyhow::{Context, anyhow};
+use std::path::Path;
 use tweezer_proto::pb::learner_client::LearnerClient;
 use tweezer_proto::pb::snapshot_request::Selector;
 use tweezer_proto::{DownloadError, download_snapshot, pb};
 
-/// Runs a learner command against the learner at `address`.
-pub async fn run(address: &str, command: LearnerCommand, json: bool) -> anyhow::Result<()> {
-    let mut client = LearnerClient::new(channel(address, "learner", "--learner").await?)
+/// Runs a learner command against the learner at `address`, connecting as
+/// the security file `security` says.
+pub async fn run(
+    security: Option<&Path>,
+    address: &str,
+    command: LearnerCommand,
+    json: bool,
+) -> anyhow::Result<()> {
+    let mut client = LearnerClient::new(channel(security, address, "learner", "--learner").await?)
         .max_decoding_message_size(64 << 20);
     match command {
         LearnerCommand::Status { watch } => {
@@ -52,6 +59,23 @@ pub async fn run(address: &str, command: LearnerCommand, json: bool) -> anyhow::
                 .map_err(|e| call_error("Checkpoint", e))?
                 .into_inner();
             fields::print(&vec![("checkpoint", serde_json::json!(reply.path))], json);
+            Ok(())
+        }
+        LearnerCommand::Actors => {
+            let status = client
+                .get_status(pb::LearnerStatusRequest {})
+                .await
+                .map_err(|e| call_error("GetStatus", e))?
+                .into_inner();
+            if status.actors.is_empty() && !json {
+                println!("no actor has sent steps to this learner since it started");
+            }
+            for (k, actor) in status.actors.iter().enumerate() {
+                if k > 0 && !json {
+                    println!();
+                }
+                fields::print(&fields::actor(actor), json);
+            }
             Ok(())
         }
         LearnerCommand::Snapshots => {

@@ -1,10 +1,12 @@
 //! `tweezer`, the operator's command line: the status of the learner and
 //! the hardware agent as a table or JSON, once or watched; snapshot
-//! downloads; and control of the hardware agent (episodes, stops, the
-//! emergency stop, policies, virtual obstacles, telemetry).
+//! downloads; control of the learner (pause, resume, checkpoint) and of the
+//! hardware agent (episodes, stops, the emergency stop, policies, virtual
+//! obstacles, telemetry); and the deployment's certificates and tokens.
 
 mod agent;
 mod connect;
+mod credentials;
 mod fields;
 mod learner;
 mod watch;
@@ -19,6 +21,11 @@ struct Cli {
     /// Print JSON (one object per line) instead of tables.
     #[arg(long, global = true)]
     json: bool,
+    /// The security file: the CA that signed the services' certificates,
+    /// this client's token file (`TWEEZER_TOKEN` overrides it) and, for
+    /// services that require one, its certificate.
+    #[arg(long, global = true, env = tweezer_rpc::SECURITY_ENV, value_name = "FILE")]
+    security: Option<PathBuf>,
     #[command(subcommand)]
     command: Group,
 }
@@ -41,6 +48,75 @@ enum Group {
         #[command(subcommand)]
         command: AgentCommand,
     },
+    /// Certificates: the deployment's CA, and one for each process.
+    Cert {
+        #[command(subcommand)]
+        command: CertCommand,
+    },
+    /// Bearer tokens.
+    Token {
+        #[command(subcommand)]
+        command: TokenCommand,
+    },
+}
+
+/// Certificate commands.
+#[derive(Subcommand)]
+pub enum CertCommand {
+    /// Make the deployment's CA: OUT/ca.crt and OUT/ca.key.
+    Ca {
+        /// The directory to write to.
+        #[arg(long, value_name = "DIR")]
+        out: PathBuf,
+        /// The CA's common name.
+        #[arg(long, default_value = "tweezer-rl CA")]
+        name: String,
+        /// Days it is valid.
+        #[arg(long, default_value_t = 3650)]
+        days: u32,
+    },
+    /// Issue a certificate for a process (served, and presented as a client
+    /// certificate): OUT/NAME.crt and OUT/NAME.key.
+    Issue {
+        /// The directory holding ca.crt and ca.key.
+        #[arg(long, value_name = "DIR")]
+        ca: PathBuf,
+        /// The certificate's name (`learner`, `agent`, `actor-3`, ...).
+        #[arg(long)]
+        name: String,
+        /// A DNS name or IP address clients reach it by (repeatable).
+        #[arg(long = "host", value_name = "HOST")]
+        hosts: Vec<String>,
+        /// The directory to write to.
+        #[arg(long, value_name = "DIR")]
+        out: PathBuf,
+        /// Days it is valid.
+        #[arg(long, default_value_t = 365)]
+        days: u32,
+    },
+}
+
+/// Token commands.
+#[derive(Subcommand)]
+pub enum TokenCommand {
+    /// Make a token: the secret goes to --out (mode 0600), its SHA-256 is
+    /// appended to the services' tokens file.
+    New {
+        /// `read` (status, snapshots, telemetry), `actor` (stream
+        /// transitions, and read) or `control` (everything that changes
+        /// state or moves the stages, and read).
+        #[arg(long)]
+        role: String,
+        /// Whose it is: logged with each state-changing call it makes.
+        #[arg(long)]
+        name: String,
+        /// The tokens file the services read (created if absent).
+        #[arg(long, value_name = "FILE")]
+        tokens: PathBuf,
+        /// Where the token goes (must not exist).
+        #[arg(long, value_name = "FILE")]
+        out: PathBuf,
+    },
 }
 
 /// What to ask the learner.
@@ -55,6 +131,9 @@ pub enum LearnerCommand {
     },
     /// The snapshots the learner keeps, with their metadata and checksums.
     Snapshots,
+    /// The actors the learner has heard from: streams open, steps and
+    /// episodes since it started, time since their last batch.
+    Actors,
     /// Stop updating the networks (actors are held back meanwhile).
     Pause,
     /// Update the networks again.
@@ -138,10 +217,17 @@ fn main() -> anyhow::Result<()> {
     let runtime = tokio::runtime::Builder::new_current_thread()
         .enable_all()
         .build()?;
+    let security = cli.security.as_deref();
     runtime.block_on(async {
         match cli.command {
-            Group::Learner { learner, command } => learner::run(&learner, command, cli.json).await,
-            Group::Agent { agent, command } => agent::run(&agent, command, cli.json).await,
+            Group::Learner { learner, command } => {
+                learner::run(security, &learner, command, cli.json).await
+            }
+            Group::Agent { agent, command } => {
+                agent::run(security, &agent, command, cli.json).await
+            }
+            Group::Cert { command } => credentials::cert(command),
+            Group::Token { command } => credentials::token(command),
         }
     })
 }

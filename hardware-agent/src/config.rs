@@ -48,12 +48,16 @@ pub struct AgentConfig {
 pub struct ServiceConfig {
     /// Address the gRPC service listens on.
     pub listen: SocketAddr,
+    /// Address of the Prometheus endpoint (`GET /metrics`, secured like
+    /// the gRPC service); none unless set.
+    pub metrics_listen: Option<SocketAddr>,
 }
 
 impl Default for ServiceConfig {
     fn default() -> Self {
         Self {
             listen: SocketAddr::from(([127, 0, 0, 1], 50061)),
+            metrics_listen: None,
         }
     }
 }

@@ -5,6 +5,7 @@
 //! an emergency stop, without waiting for the loop.
 
 mod control_thread;
+mod exposition;
 mod service;
 mod status;
 
@@ -14,30 +15,39 @@ use service::AgentService;
 use status::Shared;
 use std::sync::Arc;
 use tokio::net::TcpListener;
-use tokio_stream::wrappers::TcpListenerStream;
 use tweezer_gym::{init_logging, stop_signal};
 use tweezer_hardware_agent::config::AgentConfig;
 use tweezer_hardware_agent::control::HaltKind;
 use tweezer_hardware_agent::instrument::Instrument;
 use tweezer_hardware_agent::policy_source::LoadedPolicy;
 use tweezer_proto::pb::hardware_agent_server::HardwareAgentServer;
+use tweezer_rpc::{Security, ServerSecurity};
 
 /// How long clients may stay connected after a stop signal.
 const SHUTDOWN_GRACE: std::time::Duration = std::time::Duration::from_secs(2);
 
-/// Serves until SIGINT or SIGTERM; the stages are stopped on the way out.
-pub fn serve(config: AgentConfig, twin: bool, greedy: bool, json_logs: bool) -> anyhow::Result<()> {
+/// Serves until SIGINT or SIGTERM, secured as `security` says; the stages
+/// are stopped on the way out.
+pub fn serve(
+    config: AgentConfig,
+    security: Security,
+    twin: bool,
+    greedy: bool,
+    json_logs: bool,
+) -> anyhow::Result<()> {
     init_logging(json_logs);
+    let listener_security = ServerSecurity::load(&security)?;
     let policy = if greedy {
         LoadedPolicy::greedy()
     } else {
-        LoadedPolicy::load(&config.policy, &config.env)?
+        LoadedPolicy::load(&config.policy, &config.env, Some(&security))?
     };
     tracing::info!(policy = %policy.description, "policy loaded");
     let mut instrument = Instrument::open(&config, twin)?;
     let stopper = instrument.rig().stopper();
     let shared = Arc::new(Shared::new(stopper, &policy, instrument.overlay_len()));
-    let (jobs, thread) = ControlThread::spawn(instrument, policy, config.clone(), shared.clone())?;
+    let (jobs, thread) =
+        ControlThread::spawn(instrument, policy, config.clone(), security, shared.clone())?;
     let runtime = tokio::runtime::Builder::new_multi_thread()
         .worker_threads(2)
         .enable_all()
@@ -52,19 +62,30 @@ pub fn serve(config: AgentConfig, twin: bool, greedy: bool, json_logs: bool) -> 
                 )
             })?;
         let addr = listener.local_addr()?;
+        let metrics =
+            match config.service.metrics_listen {
+                Some(listen) => Some(TcpListener::bind(listen).await.with_context(|| {
+                    format!("cannot listen on {listen} (service.metrics_listen)")
+                })?),
+                None => None,
+            };
         tracing::info!(%addr, twin, "hardware agent serving");
         println!("hardware-agent listening on {addr}");
-        let service = AgentService::new(shared.clone(), jobs.clone());
-        let (health, health_service) = tonic_health::server::health_reporter();
-        health
-            .set_serving::<HardwareAgentServer<AgentService>>()
-            .await;
-        let reflection = tonic_reflection::server::Builder::configure()
-            .register_encoded_file_descriptor_set(tweezer_proto::FILE_DESCRIPTOR_SET)
-            .register_encoded_file_descriptor_set(tonic_health::pb::FILE_DESCRIPTOR_SET)
-            .build_v1()
-            .context("gRPC reflection")?;
         let (stopping, mut stopped) = tokio::sync::watch::channel(false);
+        if let Some(listener) = metrics {
+            let metrics_addr = listener.local_addr()?;
+            tracing::info!(%metrics_addr, "Prometheus metrics at /metrics");
+            let security = listener_security.clone();
+            let registry = Arc::new(exposition::prometheus(shared.clone()));
+            let mut done = stopped.clone();
+            tokio::spawn(async move {
+                let shutdown = async move {
+                    let _ = done.wait_for(|&s| s).await;
+                };
+                security.serve_metrics(listener, registry, shutdown).await;
+            });
+        }
+        let service = AgentService::new(shared.clone(), jobs.clone());
         let shutdown = async move {
             let signal = stop_signal().await;
             tracing::info!(
@@ -73,11 +94,7 @@ pub fn serve(config: AgentConfig, twin: bool, greedy: bool, json_logs: bool) -> 
             );
             let _ = stopping.send(true);
         };
-        let server = tonic::transport::Server::builder()
-            .add_service(health_service)
-            .add_service(reflection)
-            .add_service(HardwareAgentServer::new(service))
-            .serve_with_incoming_shutdown(TcpListenerStream::new(listener), shutdown);
+        let server = listener_security.serve(listener, HardwareAgentServer::new(service), shutdown);
         // Clients get a grace period to hang up; a telemetry subscriber
         // that never does must not keep the agent alive.
         let grace = async {
@@ -86,7 +103,7 @@ pub fn serve(config: AgentConfig, twin: bool, greedy: bool, json_logs: bool) -> 
             tracing::warn!("closing connections still open after the shutdown grace period");
         };
         tokio::select! {
-            served = server => served.context("gRPC server failed"),
+            served = server => served,
             () = grace => Ok(()),
         }
     });

@@ -22,6 +22,11 @@ struct Cli {
     /// `[twin]`); defaults otherwise.
     #[arg(long = "config", global = true, value_name = "FILE")]
     config: Option<PathBuf>,
+    /// The security file: for `serve`, the certificate, key and accepted
+    /// tokens; for a learner's snapshot, its CA and a read token (see the
+    /// README's Security section).
+    #[arg(long, global = true, env = tweezer_rpc::SECURITY_ENV, value_name = "FILE")]
+    security: Option<PathBuf>,
     #[command(subcommand)]
     command: Command,
 }
@@ -69,6 +74,10 @@ enum Command {
         /// Address to listen on (overrides `service.listen`).
         #[arg(long, value_name = "ADDR")]
         listen: Option<std::net::SocketAddr>,
+        /// Serve Prometheus metrics here (overrides
+        /// `service.metrics_listen`).
+        #[arg(long, value_name = "ADDR")]
+        metrics_listen: Option<std::net::SocketAddr>,
         #[command(flatten)]
         overrides: LoopOverrides,
         /// Log JSON lines instead of text.
@@ -136,20 +145,30 @@ fn main() -> anyhow::Result<()> {
                 greedy,
                 snapshot,
             };
-            run_episodes::run(&config, args)?;
+            let security = match tweezer_rpc::Security::load(cli.security.as_deref()) {
+                Ok(security) => Some(security),
+                Err(tweezer_rpc::SecurityError::Missing) => None,
+                Err(e) => return Err(e.into()),
+            };
+            run_episodes::run(&config, args, security.as_ref())?;
         }
         Command::Serve {
             twin,
             greedy,
             listen,
+            metrics_listen,
             overrides,
             log_json,
         } => {
             if let Some(listen) = listen {
                 config.service.listen = listen;
             }
+            if metrics_listen.is_some() {
+                config.service.metrics_listen = metrics_listen;
+            }
             overrides.apply(&mut config)?;
-            daemon::serve(config, twin, greedy, log_json)?;
+            let security = tweezer_rpc::Security::load(cli.security.as_deref())?;
+            daemon::serve(config, security, twin, greedy, log_json)?;
         }
         Command::Segment { files, json } => segment_files::run(&config, &files, json)?,
         Command::Bench {

@@ -12,6 +12,7 @@ use tweezer_nets::{NetworkPolicy, SnapshotInfo, file_sha256};
 use tweezer_proto::pb::learner_client::LearnerClient;
 use tweezer_proto::pb::snapshot_request::Selector;
 use tweezer_proto::{download_snapshot, pb};
+use tweezer_rpc::{ClientSecurity, Security, hint};
 
 /// What kind of source.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
@@ -31,7 +32,8 @@ pub enum PolicyKind {
 pub struct PolicyConfig {
     /// Where the policy comes from.
     pub source: PolicyKind,
-    /// The learner's gRPC address (source = "learner").
+    /// The learner's gRPC address (source = "learner"): `host:port`, or a
+    /// URL whose scheme matches the security file.
     pub learner: String,
     /// Which of its snapshots: "best", "latest" or a version number.
     pub snapshot: String,
@@ -45,7 +47,7 @@ impl Default for PolicyConfig {
     fn default() -> Self {
         Self {
             source: PolicyKind::Learner,
-            learner: "http://127.0.0.1:50051".into(),
+            learner: "127.0.0.1:50051".into(),
             snapshot: "best".into(),
             file: PathBuf::from("snapshot.safetensors"),
             timeout_s: 30.0,
@@ -175,8 +177,13 @@ impl LoadedPolicy {
         }
     }
 
-    /// Loads the policy `config` names, for observations of `env`.
-    pub fn load(config: &PolicyConfig, env: &EnvConfig) -> Result<Self, PolicyError> {
+    /// Loads the policy `config` names, for observations of `env`; a
+    /// learner's snapshot is fetched as `security` says.
+    pub fn load(
+        config: &PolicyConfig,
+        env: &EnvConfig,
+        security: Option<&Security>,
+    ) -> Result<Self, PolicyError> {
         config.validate().map_err(PolicyError::Config)?;
         let choice = match config.source {
             PolicyKind::Greedy => PolicyChoice::Greedy,
@@ -185,21 +192,28 @@ impl LoadedPolicy {
                 SnapshotChoice::parse(&config.snapshot).map_err(PolicyError::Config)?,
             ),
         };
-        Self::choose(&choice, config, env)
+        Self::choose(&choice, config, env, security)
     }
 
-    /// Loads `choice`, a learner's snapshot from the learner `config` names.
+    /// Loads `choice`, a learner's snapshot from the learner `config` names
+    /// (connecting as `security` says).
     pub fn choose(
         choice: &PolicyChoice,
         config: &PolicyConfig,
         env: &EnvConfig,
+        security: Option<&Security>,
     ) -> Result<Self, PolicyError> {
         match choice {
             PolicyChoice::Greedy => Ok(Self::greedy()),
             PolicyChoice::File(path) => Self::from_file(path, env),
             PolicyChoice::Learner(snapshot) => {
                 let timeout = Duration::from_secs_f64(config.timeout_s);
-                Self::from_learner(&config.learner, *snapshot, timeout, env)
+                let security = security.ok_or_else(|| {
+                    PolicyError::Config(
+                        "a learner's snapshot needs a security file (--security or TWEEZER_SECURITY) with the learner's CA and a read token".into(),
+                    )
+                })?;
+                Self::from_learner(&config.learner, *snapshot, timeout, env, security)
             }
         }
     }
@@ -218,6 +232,7 @@ impl LoadedPolicy {
         choice: SnapshotChoice,
         timeout: Duration,
         env: &EnvConfig,
+        security: &Security,
     ) -> Result<Self, PolicyError> {
         let fail = |reason: String| PolicyError::Learner {
             address: address.into(),
@@ -229,11 +244,23 @@ impl LoadedPolicy {
             .build()
             .map_err(|e| fail(e.to_string()))?;
         let (info, bytes) = runtime.block_on(async {
-            let endpoint = tonic::transport::Endpoint::from_shared(address.to_string())
+            let client = ClientSecurity::load(security).map_err(|e| fail(e.to_string()))?;
+            let endpoint = client
+                .endpoint(address)
                 .map_err(|e| fail(e.to_string()))?
                 .connect_timeout(timeout)
                 .timeout(timeout);
-            let channel = endpoint.connect().await.map_err(|e| fail(e.to_string()))?;
+            let channel = endpoint.connect().await.map_err(|e| {
+                let cause = std::error::Error::source(&e)
+                    .map_or_else(|| e.to_string(), ToString::to_string);
+                fail(format!(
+                    "{cause}{}",
+                    hint(&cause, client.plaintext())
+                        .map(|h| format!(" ({h})"))
+                        .unwrap_or_default()
+                ))
+            })?;
+            let channel = client.authed(channel);
             let mut client = LearnerClient::new(channel).max_decoding_message_size(64 << 20);
             download_snapshot(&mut client, choice.selector())
                 .await

@@ -10,6 +10,7 @@ use tweezer_hardware_agent::control::{Halt, HaltKind};
 use tweezer_hardware_agent::instrument::Instrument;
 use tweezer_hardware_agent::policy_source::{LoadedPolicy, PolicyChoice};
 use tweezer_hardware_agent::record::EpisodeHeader;
+use tweezer_rpc::Security;
 
 /// What `run` was asked for.
 pub struct RunArgs {
@@ -28,8 +29,9 @@ pub struct RunArgs {
     pub snapshot: Option<PathBuf>,
 }
 
-/// Runs the episodes and prints a line for each.
-pub fn run(config: &AgentConfig, args: RunArgs) -> anyhow::Result<()> {
+/// Runs the episodes and prints a line for each; a learner's snapshot is
+/// fetched as `security` says.
+pub fn run(config: &AgentConfig, args: RunArgs, security: Option<&Security>) -> anyhow::Result<()> {
     init_logging(false);
     if !args.twin && args.target_um.is_none() {
         bail!("on the instrument, give the target: --target-um DX,DY");
@@ -37,9 +39,9 @@ pub fn run(config: &AgentConfig, args: RunArgs) -> anyhow::Result<()> {
     let mut policy = match (args.greedy, args.snapshot) {
         (true, _) => LoadedPolicy::greedy(),
         (false, Some(file)) => {
-            LoadedPolicy::choose(&PolicyChoice::File(file), &config.policy, &config.env)?
+            LoadedPolicy::choose(&PolicyChoice::File(file), &config.policy, &config.env, None)?
         }
-        (false, None) => LoadedPolicy::load(&config.policy, &config.env)?,
+        (false, None) => LoadedPolicy::load(&config.policy, &config.env, security)?,
     };
     tracing::info!(policy = %policy.description, "policy loaded");
     let mut instrument = Instrument::open(config, args.twin)?;

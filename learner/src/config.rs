@@ -49,6 +49,9 @@ impl LearnerFile {
 pub struct LearnerConfig {
     /// Address the gRPC service listens on.
     pub listen: SocketAddr,
+    /// Address of the Prometheus endpoint (`GET /metrics`, secured like
+    /// the gRPC service); none unless set.
+    pub metrics_listen: Option<SocketAddr>,
     /// Directory for the config, snapshots, checkpoints and metrics.
     pub run_dir: PathBuf,
     /// Where the networks train.
@@ -78,6 +81,7 @@ impl Default for LearnerConfig {
     fn default() -> Self {
         Self {
             listen: SocketAddr::from(([127, 0, 0, 1], 50051)),
+            metrics_listen: None,
             run_dir: PathBuf::from("runs/learner"),
             device: DeviceChoice::Flex,
             seed: 0,

@@ -9,6 +9,7 @@ pub mod bench;
 pub mod checkpoint;
 pub mod config;
 pub mod episodes;
+pub mod exposition;
 pub mod fsio;
 pub mod limiter;
 pub mod loopback;

@@ -39,9 +39,17 @@ enum Command {
         /// Listen here instead of `learner.listen` (port 0: any free port).
         #[arg(long, value_name = "ADDR")]
         listen: Option<SocketAddr>,
+        /// Serve Prometheus metrics here instead of at
+        /// `learner.metrics_listen`.
+        #[arg(long, value_name = "ADDR")]
+        metrics_listen: Option<SocketAddr>,
         /// Write the run here instead of `learner.run_dir`.
         #[arg(long, value_name = "DIR", conflicts_with = "resume")]
         run_dir: Option<PathBuf>,
+        /// The security file: certificate, key, accepted tokens (see the
+        /// README's Security section).
+        #[arg(long, env = tweezer_rpc::SECURITY_ENV, value_name = "FILE")]
+        security: Option<PathBuf>,
     },
     /// Train an agent in one command: the learner and its actors as local
     /// processes, a progress bar, a run directory, and at the end the best
@@ -132,7 +140,9 @@ fn main() -> anyhow::Result<()> {
         Command::Serve {
             resume,
             listen,
+            metrics_listen,
             run_dir,
+            security,
         } => {
             let path = match (&cli.config, &resume) {
                 (Some(path), _) => Some(path.clone()),
@@ -146,7 +156,11 @@ fn main() -> anyhow::Result<()> {
             if let Some(addr) = listen {
                 file.learner.listen = addr;
             }
-            serve(file, resume.is_some())?;
+            if metrics_listen.is_some() {
+                file.learner.metrics_listen = metrics_listen;
+            }
+            let security = tweezer_rpc::Security::load(security.as_deref())?;
+            serve(file, resume.is_some(), &security)?;
         }
         Command::Train {
             preset,

@@ -1,11 +1,13 @@
 //! `learner serve`: the learner process. Builds the shared state (fresh or
-//! from the newest valid checkpoint), serves gRPC (the `Learner` service and
-//! `grpc.health.v1`), trains on a thread of its own, and on SIGINT or
+//! from the newest valid checkpoint), serves gRPC (the `Learner` service,
+//! health and reflection, behind TLS and tokens as the security file says),
+//! trains on a thread of its own, and on SIGINT or
 //! SIGTERM stops accepting, finishes the update in flight and writes a
 //! final checkpoint.
 
 use crate::checkpoint::{Checkpoints, Loaded};
 use crate::config::LearnerFile;
+use crate::exposition::prometheus;
 use crate::fsio::write_bytes_atomic;
 use crate::limiter::{Limiter, SharedLimiter};
 use crate::metrics::Metrics;
@@ -18,9 +20,9 @@ use anyhow::{Context, bail};
 use std::path::Path;
 use std::sync::Arc;
 use tokio::net::TcpListener;
-use tokio_stream::wrappers::TcpListenerStream;
 use tweezer_gym::{ObservationBounds, stop_signal};
 use tweezer_proto::pb::learner_server::LearnerServer;
+use tweezer_rpc::{Security, ServerSecurity};
 
 /// The run directory's checkpoints.
 const CHECKPOINTS: &str = "checkpoints";
@@ -35,8 +37,10 @@ pub const CONFIG: &str = "config.toml";
 
 /// Runs the learner until a signal stops it or training fails. With
 /// `resume`, continues the run in `file.learner.run_dir` from its newest
-/// valid checkpoint.
-pub fn serve(file: LearnerFile, resume: bool) -> anyhow::Result<()> {
+/// valid checkpoint. `security` says how it listens: checked before
+/// anything starts.
+pub fn serve(file: LearnerFile, resume: bool, security: &Security) -> anyhow::Result<()> {
+    let listener_security = ServerSecurity::load(security)?;
     let config = &file.learner;
     let run_dir = &config.run_dir;
     std::fs::create_dir_all(run_dir)
@@ -74,10 +78,12 @@ pub fn serve(file: LearnerFile, resume: bool) -> anyhow::Result<()> {
             .await
             .with_context(|| format!("cannot listen on {} (learner.listen)", config.listen))?;
         let addr = listener.local_addr()?;
-        let (health, health_service) = tonic_health::server::health_reporter();
-        health
-            .set_serving::<LearnerServer<LearnerService>>()
-            .await;
+        let metrics = match config.metrics_listen {
+            Some(listen) => Some(TcpListener::bind(listen).await.with_context(|| {
+                format!("cannot listen on {listen} (learner.metrics_listen)")
+            })?),
+            None => None,
+        };
         let (trained_tx, trained_rx) = tokio::sync::oneshot::channel();
         let trainer_shared = shared.clone();
         let training = std::thread::Builder::new()
@@ -89,6 +95,17 @@ pub fn serve(file: LearnerFile, resume: bool) -> anyhow::Result<()> {
             })?;
         tracing::info!(%addr, run_dir = %run_dir.display(), "learner serving");
         println!("learner listening on {addr}");
+        if let Some(listener) = metrics {
+            let metrics_addr = listener.local_addr()?;
+            tracing::info!(%metrics_addr, "Prometheus metrics at /metrics");
+            let (security, shared) = (listener_security.clone(), shared.clone());
+            tokio::spawn(async move {
+                let registry = Arc::new(prometheus(shared.clone()));
+                security
+                    .serve_metrics(listener, registry, shared.stopped())
+                    .await;
+            });
+        }
         let stopped = shared.clone();
         let shutdown = async move {
             tokio::select! {
@@ -97,16 +114,11 @@ pub fn serve(file: LearnerFile, resume: bool) -> anyhow::Result<()> {
             }
             stopped.stop();
         };
-        let reflection = tonic_reflection::server::Builder::configure()
-            .register_encoded_file_descriptor_set(tweezer_proto::FILE_DESCRIPTOR_SET)
-            .register_encoded_file_descriptor_set(tonic_health::pb::FILE_DESCRIPTOR_SET)
-            .build_v1()
-            .context("gRPC reflection")?;
-        let server = tonic::transport::Server::builder()
-            .add_service(health_service)
-            .add_service(reflection)
-            .add_service(LearnerServer::new(LearnerService::new(shared.clone())))
-            .serve_with_incoming_shutdown(TcpListenerStream::new(listener), shutdown);
+        let server = listener_security.serve(
+            listener,
+            LearnerServer::new(LearnerService::new(shared.clone())),
+            shutdown,
+        );
         // Clients get a grace period to hang up; one that never does (an
         // idle connection nobody drives) must not keep the learner alive.
         let grace = async {
@@ -123,7 +135,7 @@ pub fn serve(file: LearnerFile, resume: bool) -> anyhow::Result<()> {
             Err(anyhow::anyhow!("the training thread ended without a result"))
         });
         let _ = training.join();
-        served.context("gRPC server failed")?;
+        served?;
         trained
     })
 }

@@ -2,7 +2,7 @@
 //! acknowledgements; clients fetch snapshots in chunks; operators read
 //! status. Wire types stop here: the rest of the learner sees domain types.
 
-use crate::shared::Shared;
+use crate::shared::{ActorSummary, Shared};
 use crate::snapshots::{Published, Selector, SnapshotsError};
 use std::pin::Pin;
 use std::sync::Arc;
@@ -84,11 +84,17 @@ impl Learner for LearnerService {
                     }
                 };
                 let (s, t) = (shared.clone(), tx.clone());
+                let arrived = std::time::Instant::now();
+                let mut bound = actor.clone();
                 let result = tokio::task::spawn_blocking(move || {
-                    let ack = s.accept(&batch, &mut actor, || t.is_closed());
-                    (ack, actor)
+                    let ack = s.accept(&batch, &mut bound, || t.is_closed());
+                    (ack, bound)
                 })
                 .await;
+                shared
+                    .timings()
+                    .batch_seconds
+                    .observe(arrived.elapsed().as_secs_f64());
                 let Ok((ack, bound)) = result else {
                     let _ = tx
                         .send(Err(Status::internal("batch handling failed")))
@@ -101,7 +107,7 @@ impl Learner for LearnerService {
                     break;
                 }
             }
-            shared.stream_closed();
+            shared.stream_closed(actor.as_deref());
         });
         Ok(Response::new(Box::pin(
             tokio_stream::wrappers::ReceiverStream::new(rx),
@@ -176,7 +182,7 @@ impl Learner for LearnerService {
         &self,
         _request: Request<pb::LearnerStatusRequest>,
     ) -> Result<Response<pb::LearnerStatus>, Status> {
-        Ok(Response::new(self.status()))
+        Ok(Response::new(status(&self.shared)))
     }
 
     async fn pause_learning(
@@ -186,7 +192,7 @@ impl Learner for LearnerService {
         self.training_only()?;
         self.shared.set_paused(true);
         tracing::info!("learning paused by an operator");
-        Ok(Response::new(self.status()))
+        Ok(Response::new(status(&self.shared)))
     }
 
     async fn resume_learning(
@@ -196,7 +202,7 @@ impl Learner for LearnerService {
         self.training_only()?;
         self.shared.set_paused(false);
         tracing::info!("learning resumed by an operator");
-        Ok(Response::new(self.status()))
+        Ok(Response::new(status(&self.shared)))
     }
 
     async fn checkpoint(
@@ -229,44 +235,56 @@ impl LearnerService {
         }
         Ok(())
     }
+}
 
-    /// The status on the wire.
-    fn status(&self) -> pb::LearnerStatus {
-        let s = &self.shared;
-        let (len, capacity) = {
-            let replay = s.replay();
-            (replay.len(), replay.capacity())
-        };
-        let (rolling, episodes) = {
-            let episodes = s.episodes();
-            (episodes.rolling(), episodes.finished())
-        };
-        let training = *s.training();
-        let (latest_snapshot, best_snapshot) = s
-            .snapshots()
-            .map_or((0, 0), |s| (s.latest_version(), s.best_version()));
-        pb::LearnerStatus {
-            steps_inserted: s.steps_inserted(),
-            updates: training.updates,
-            buffer_size: len as u64,
-            buffer_capacity: capacity as u64,
-            insert_rate: training.insert_rate,
-            sample_rate: training.sample_rate,
-            limiter_state: s.limiter_state().into(),
-            connected_actors: s.connected(),
-            rolling_return: rolling.mean_return,
-            success_rate: rolling.success_rate,
-            latest_snapshot,
-            best_snapshot,
-            critic_loss: training.critic_loss,
-            actor_loss: training.actor_loss,
-            mean_q: training.mean_q,
-            episodes,
-            malformed_batches: s.malformed(),
-            duplicate_batches: s.duplicates(),
-            explore_uniformly: s.explore_uniformly(),
-            paused: s.paused(),
-        }
+/// The learner's status on the wire.
+pub fn status(s: &Shared) -> pb::LearnerStatus {
+    let (len, capacity) = {
+        let replay = s.replay();
+        (replay.len(), replay.capacity())
+    };
+    let (rolling, episodes) = {
+        let episodes = s.episodes();
+        (episodes.rolling(), episodes.finished())
+    };
+    let training = *s.training();
+    let (latest_snapshot, best_snapshot) = s
+        .snapshots()
+        .map_or((0, 0), |s| (s.latest_version(), s.best_version()));
+    pb::LearnerStatus {
+        steps_inserted: s.steps_inserted(),
+        updates: training.updates,
+        buffer_size: len as u64,
+        buffer_capacity: capacity as u64,
+        insert_rate: training.insert_rate,
+        sample_rate: training.sample_rate,
+        limiter_state: s.limiter_state().into(),
+        connected_actors: s.connected(),
+        rolling_return: rolling.mean_return,
+        success_rate: rolling.success_rate,
+        latest_snapshot,
+        best_snapshot,
+        critic_loss: training.critic_loss,
+        actor_loss: training.actor_loss,
+        mean_q: training.mean_q,
+        episodes,
+        malformed_batches: s.malformed(),
+        duplicate_batches: s.duplicates(),
+        explore_uniformly: s.explore_uniformly(),
+        paused: s.paused(),
+        actors: s.actors().into_iter().map(actor_to_wire).collect(),
+    }
+}
+
+/// An actor's summary on the wire.
+fn actor_to_wire(actor: ActorSummary) -> pb::ActorStatus {
+    pb::ActorStatus {
+        id: actor.id,
+        streams: actor.streams,
+        steps: actor.steps,
+        episodes: actor.episodes,
+        idle_seconds: actor.idle_seconds,
+        last_sequence: actor.last_sequence,
     }
 }
 

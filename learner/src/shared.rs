@@ -11,10 +11,11 @@ use crate::snapshots::Snapshots;
 use std::collections::{BTreeMap, HashMap};
 use std::sync::atomic::{AtomicBool, AtomicU32, AtomicU64, Ordering};
 use std::sync::{Mutex, MutexGuard};
-use std::time::Duration;
+use std::time::{Duration, Instant};
 use tonic::Status;
 use tweezer_gym::ObservationBounds;
 use tweezer_proto::pb;
+use tweezer_rpc::{Histogram, latency_buckets};
 
 /// What training reports for status.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
@@ -39,6 +40,43 @@ struct KnownActor {
     source: Source,
     /// The last batch stored.
     last_sequence: Option<u64>,
+    /// Open streams bound to it.
+    streams: u32,
+    /// Steps stored and episodes finished since this process started.
+    steps: u64,
+    episodes: u64,
+    /// When its last batch was stored.
+    last_stored: Option<Instant>,
+}
+
+impl KnownActor {
+    fn new(source: Source, last_sequence: Option<u64>) -> Self {
+        Self {
+            source,
+            last_sequence,
+            streams: 0,
+            steps: 0,
+            episodes: 0,
+            last_stored: None,
+        }
+    }
+}
+
+/// One actor, as the learner sees it.
+#[derive(Clone, Debug, PartialEq)]
+pub struct ActorSummary {
+    /// Its id.
+    pub id: String,
+    /// Open streams bound to it.
+    pub streams: u32,
+    /// Steps stored from it since this process started.
+    pub steps: u64,
+    /// Episodes it finished since this process started.
+    pub episodes: u64,
+    /// Seconds since its last stored batch (None: none since start).
+    pub idle_seconds: Option<f64>,
+    /// Its last stored batch's sequence number.
+    pub last_sequence: Option<u64>,
 }
 
 /// The state a checkpoint takes of the shared parts, read consistently.
@@ -79,6 +117,26 @@ pub struct Shared {
     checkpoint_wanted: AtomicBool,
     /// The newest checkpoint written, announced to whoever waits for one.
     checkpoints: tokio::sync::watch::Sender<Option<std::path::PathBuf>>,
+    timings: Timings,
+}
+
+/// Latency histograms, exposed as Prometheus metrics.
+#[derive(Debug)]
+pub struct Timings {
+    /// Seconds per TD3 update.
+    pub update_seconds: Histogram,
+    /// Seconds from a batch's arrival to its acknowledgement, waits for
+    /// the rate limiter included.
+    pub batch_seconds: Histogram,
+}
+
+impl Default for Timings {
+    fn default() -> Self {
+        Self {
+            update_seconds: Histogram::new(latency_buckets()),
+            batch_seconds: Histogram::new(latency_buckets()),
+        }
+    }
 }
 
 fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
@@ -107,7 +165,13 @@ impl Shared {
             paused: AtomicBool::new(false),
             checkpoint_wanted: AtomicBool::new(false),
             checkpoints: tokio::sync::watch::Sender::new(None),
+            timings: Timings::default(),
         }
+    }
+
+    /// The latency histograms.
+    pub fn timings(&self) -> &Timings {
+        &self.timings
     }
 
     /// Actors explore uniformly until `steps` transitions are inserted.
@@ -140,13 +204,7 @@ impl Shared {
         let mut known = lock(&self.actors);
         for (id, &sequence) in actors {
             let source = known.len() as Source;
-            known.insert(
-                id.clone(),
-                KnownActor {
-                    source,
-                    last_sequence: Some(sequence),
-                },
-            );
+            known.insert(id.clone(), KnownActor::new(source, Some(sequence)));
         }
         drop(known);
         self
@@ -203,8 +261,31 @@ impl Shared {
         self.connected.fetch_add(1, Ordering::Relaxed);
     }
 
-    pub(crate) fn stream_closed(&self) {
+    /// A stream closed; `actor` is the actor it was bound to, if any.
+    pub(crate) fn stream_closed(&self, actor: Option<&str>) {
         self.connected.fetch_sub(1, Ordering::Relaxed);
+        if let Some(id) = actor
+            && let Some(known) = lock(&self.actors).get_mut(id)
+        {
+            known.streams = known.streams.saturating_sub(1);
+        }
+    }
+
+    /// Every actor heard from, by id.
+    pub fn actors(&self) -> Vec<ActorSummary> {
+        let mut actors: Vec<ActorSummary> = lock(&self.actors)
+            .iter()
+            .map(|(id, known)| ActorSummary {
+                id: id.clone(),
+                streams: known.streams,
+                steps: known.steps,
+                episodes: known.episodes,
+                idle_seconds: known.last_stored.map(|t| t.elapsed().as_secs_f64()),
+                last_sequence: known.last_sequence,
+            })
+            .collect();
+        actors.sort_by(|a, b| a.id.cmp(&b.id));
+        actors
     }
 
     /// Episode statistics.
@@ -320,7 +401,15 @@ impl Shared {
                 ))));
             }
             Some(_) => {}
-            None => *stream_actor = Some(actor.clone()),
+            None => {
+                *stream_actor = Some(actor.clone());
+                let mut actors = lock(&self.actors);
+                let next_source = actors.len() as Source;
+                actors
+                    .entry(actor.clone())
+                    .or_insert(KnownActor::new(next_source, None))
+                    .streams += 1;
+            }
         }
         if let Some((i, reason)) =
             (steps.iter().enumerate()).find_map(|(i, s)| Replay::admits(s).err().map(|e| (i, e)))
@@ -348,10 +437,9 @@ impl Shared {
             let mut replay = self.replay();
             let mut actors = lock(&self.actors);
             let next_source = actors.len() as Source;
-            let known = actors.entry(actor).or_insert(KnownActor {
-                source: next_source,
-                last_sequence: None,
-            });
+            let known = actors
+                .entry(actor)
+                .or_insert(KnownActor::new(next_source, None));
             if known.last_sequence.is_some_and(|last| sequence <= last) {
                 // Another stream of the same actor stored it meanwhile.
                 self.duplicates.fetch_add(1, Ordering::Relaxed);
@@ -359,7 +447,6 @@ impl Shared {
             }
             known.last_sequence = Some(sequence);
             let source = known.source;
-            drop(actors);
             let mut episodes = self.episodes();
             for step in &steps {
                 replay
@@ -367,6 +454,10 @@ impl Shared {
                     .expect("steps were checked against the replay's limits");
                 finished.extend(episodes.step(source, step));
             }
+            known.steps += steps.len() as u64;
+            known.episodes += finished.len() as u64;
+            known.last_stored = Some(Instant::now());
+            drop(actors);
             self.steps_inserted
                 .fetch_add(steps.len() as u64, Ordering::Relaxed);
             replay.len()

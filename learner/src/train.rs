@@ -7,11 +7,13 @@
 //! A file with a `[sweep]` trains each of its runs in turn, then reports
 //! over all of them.
 
+mod credentials;
 mod plan;
 mod processes;
 mod progress;
 mod sweep;
 
+pub use credentials::{Credentials, SECURITY_DIR};
 pub use plan::{TrainConfig, TrainFile};
 pub use sweep::{SweepConfig, SweepRun};
 
@@ -29,6 +31,7 @@ use std::time::{Duration, Instant};
 use tweezer_gym::{SplitMix64, stop_signal};
 use tweezer_proto::pb::learner_client::LearnerClient;
 use tweezer_proto::pb::{LearnerStatus, LearnerStatusRequest};
+use tweezer_rpc::{AuthChannel, ClientSecurity, Security};
 
 /// The actors' config file in the run directory.
 const ACTOR_FILE: &str = "actor.toml";
@@ -225,19 +228,26 @@ async fn supervise(
 ) -> anyhow::Result<TrainSummary> {
     let logs = out.join(LOGS);
     std::fs::create_dir_all(&logs).with_context(|| format!("cannot create {}", logs.display()))?;
-    let (mut learner, addr) = start_learner(out, &logs, resume).await?;
+    let credentials = Credentials::provision(out)?;
+    let (mut learner, addr) = start_learner(out, &logs, resume, &credentials.learner).await?;
     tracing::info!(
         learner = %addr,
-        "learner listening; watch it with `tweezer learner --learner {addr} status --watch 2`"
+        "learner listening; watch it with `tweezer --security {} learner --learner {addr} status --watch 2`",
+        credentials.read.display()
     );
-    let mut client = LearnerClient::connect(format!("http://{addr}"))
-        .await
-        .context("cannot connect to the learner")?;
+    let reader = ClientSecurity::load(&Security::load(Some(&credentials.read))?)?;
+    let mut client = LearnerClient::new(
+        reader
+            .connect(&addr.to_string(), Duration::from_secs(10))
+            .await
+            .context("cannot connect to the learner")?,
+    );
     let first = status(&mut client).await?;
     let launcher = ActorLauncher {
         binary: actor_bin.to_path_buf(),
         config: out.join(ACTOR_FILE),
         learner: addr,
+        security: credentials.actor.clone(),
         logs: logs.clone(),
     };
     let seed = |k: usize, restarts: u32| {
@@ -352,9 +362,7 @@ async fn stop_learner(learner: &mut Process) -> anyhow::Result<()> {
     learner.wait().await
 }
 
-async fn status(
-    client: &mut LearnerClient<tonic::transport::Channel>,
-) -> anyhow::Result<LearnerStatus> {
+async fn status(client: &mut LearnerClient<AuthChannel>) -> anyhow::Result<LearnerStatus> {
     Ok(client
         .get_status(LearnerStatusRequest {})
         .await

@@ -186,7 +186,9 @@ impl Trainer {
         s.n += 1;
         s.critic_loss += stats.critic_loss;
         s.mean_q += stats.mean_q;
-        s.update_ms += started.elapsed().as_secs_f64() * 1e3;
+        let seconds = started.elapsed().as_secs_f64();
+        s.update_ms += seconds * 1e3;
+        self.shared.timings().update_seconds.observe(seconds);
         if let Some(a) = stats.actor_loss {
             s.actor_loss += a;
             s.actor_n += 1;

@@ -5,17 +5,19 @@
 use std::io::{BufRead, BufReader, Read};
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
+use std::sync::OnceLock;
 use std::sync::mpsc;
 use std::time::{Duration, Instant};
-use tonic::transport::Channel;
 use tweezer_gym::{
     Action, EnvConfig, EvalSummary, Greedy, Observation, Policy, Renderer, SplitMix64,
     UniformRandom, VecEnv, evaluate,
 };
+use tweezer_learner::train::Credentials;
 use tweezer_nets::NetworkPolicy;
 use tweezer_proto::pb::learner_client::LearnerClient;
 use tweezer_proto::pb::snapshot_request::Selector;
 use tweezer_proto::{download_snapshot, pb, step_to_wire};
+use tweezer_rpc::{AuthChannel, ClientSecurity, Security};
 
 /// No free spheres, 20 x 16 images, the carry and time rewards only (so
 /// that Q is about direction alone): learnable in a few thousand updates.
@@ -69,6 +71,8 @@ impl Learner {
     fn start(args: &[&str]) -> Self {
         let mut child = Command::new(env!("CARGO_BIN_EXE_learner"))
             .arg("serve")
+            .arg("--security")
+            .arg(&credentials().learner)
             .args(args)
             .stdout(Stdio::piped())
             .stderr(Stdio::piped())
@@ -106,10 +110,18 @@ impl Learner {
         ])
     }
 
-    async fn client(&self) -> LearnerClient<Channel> {
-        LearnerClient::connect(format!("http://{}", self.addr))
+    /// A channel with the actors' token (which may also read).
+    async fn channel(&self) -> AuthChannel {
+        let security = Security::load(Some(&credentials().actor)).unwrap();
+        ClientSecurity::load(&security)
+            .unwrap()
+            .connect(&self.addr, Duration::from_secs(10))
             .await
             .unwrap()
+    }
+
+    async fn client(&self) -> LearnerClient<AuthChannel> {
+        LearnerClient::new(self.channel().await)
     }
 
     /// SIGTERM, then the exit status and everything it logged.
@@ -138,6 +150,17 @@ impl Drop for Learner {
 }
 
 /// A temporary directory with the tiny config file and a run directory.
+/// The learner's certificate and tokens, made once for this test binary.
+fn credentials() -> &'static Credentials {
+    static DIR: OnceLock<(tempfile::TempDir, Credentials)> = OnceLock::new();
+    let (_, credentials) = DIR.get_or_init(|| {
+        let dir = tempfile::tempdir().unwrap();
+        let credentials = Credentials::provision(dir.path()).unwrap();
+        (dir, credentials)
+    });
+    credentials
+}
+
 fn run_dir() -> (tempfile::TempDir, PathBuf, PathBuf) {
     let dir = tempfile::tempdir().unwrap();
     let config = dir.path().join("learner.toml");
@@ -360,6 +383,8 @@ async fn resumes_from_the_newest_whole_checkpoint() {
     let refused = Command::new(env!("CARGO_BIN_EXE_learner"))
         .args(["serve", "--config", config.to_str().unwrap(), "--run-dir"])
         .arg(&run)
+        .arg("--security")
+        .arg(&credentials().learner)
         .output()
         .unwrap();
     assert!(!refused.status.success());
@@ -371,11 +396,7 @@ async fn resumes_from_the_newest_whole_checkpoint() {
     std::fs::write(&cut, &whole[..whole.len() / 2]).unwrap();
 
     let learner = Learner::start(&["--resume", run.to_str().unwrap()]);
-    let channel = Channel::from_shared(format!("http://{}", learner.addr))
-        .unwrap()
-        .connect()
-        .await
-        .unwrap();
+    let channel = learner.channel().await;
     let mut health = tonic_health::pb::health_client::HealthClient::new(channel);
     let serving = health
         .check(tonic_health::pb::HealthCheckRequest {

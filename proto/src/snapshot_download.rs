@@ -5,7 +5,7 @@
 use crate::pb;
 use crate::pb::learner_client::LearnerClient;
 use sha2::{Digest, Sha256};
-use tonic::transport::Channel;
+use tonic::codegen::{Body, Bytes, StdError};
 
 /// Most bytes a snapshot may announce (a paper-size actor is ~170 MB).
 const MAX_SNAPSHOT_BYTES: u64 = 2 << 30;
@@ -23,10 +23,16 @@ pub enum DownloadError {
 }
 
 /// Downloads the snapshot `selector` names; returns its info and bytes.
-pub async fn download_snapshot(
-    client: &mut LearnerClient<Channel>,
+pub async fn download_snapshot<T>(
+    client: &mut LearnerClient<T>,
     selector: pb::snapshot_request::Selector,
-) -> Result<(pb::SnapshotInfo, Vec<u8>), DownloadError> {
+) -> Result<(pb::SnapshotInfo, Vec<u8>), DownloadError>
+where
+    T: tonic::client::GrpcService<tonic::body::Body>,
+    T::Error: Into<StdError>,
+    T::ResponseBody: Body<Data = Bytes> + Send + 'static,
+    <T::ResponseBody as Body>::Error: Into<StdError> + Send,
+{
     let bad = |m: String| DownloadError::Inconsistent(m);
     let mut chunks = client
         .get_snapshot(pb::SnapshotRequest {

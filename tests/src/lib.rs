@@ -98,30 +98,141 @@ pub fn stderr_of_failure(output: &Output) -> String {
     String::from_utf8_lossy(&output.stderr).into_owned()
 }
 
-/// Starts `learner serve` with `args`; returns it, once it listens, and the
-/// address it listens on.
+/// The test deployment's credentials, made once per test process with the
+/// `tweezer cert` and `tweezer token` commands: a CA, a certificate for
+/// loopback (`server`) and one for a client (`client`), a token of each
+/// role and a `stranger` token the services do not list, and a security
+/// file for each use.
+pub struct Credentials {
+    /// Where they are.
+    pub dir: PathBuf,
+}
+
+impl Credentials {
+    /// The security file `name`: `server` (certificate, key, tokens, and a
+    /// read token for fetching snapshots), `server-mtls` (and requiring
+    /// client certificates), `read`, `actor`, `control`, `stranger`
+    /// (clients with that token), `control-cert` (and the client
+    /// certificate), `server-plain` and `read-plain` (plaintext).
+    pub fn file(&self, name: &str) -> String {
+        let path = self.dir.join(format!("{name}.toml"));
+        assert!(path.is_file(), "no security file {}", path.display());
+        path.to_str().expect("a UTF-8 path").to_string()
+    }
+
+    /// The client settings of the security file `name`.
+    pub fn client(&self, name: &str) -> tweezer_rpc::ClientSecurity {
+        let security = tweezer_rpc::Security::load(Some(Path::new(&self.file(name))))
+            .expect("the security file loads");
+        tweezer_rpc::ClientSecurity::load(&security).expect("the client settings load")
+    }
+}
+
+/// The test deployment's credentials (made on first use).
+pub fn credentials() -> &'static Credentials {
+    static CREDENTIALS: OnceLock<Credentials> = OnceLock::new();
+    CREDENTIALS.get_or_init(|| {
+        let dir = std::env::temp_dir().join(format!("tweezer-test-credentials-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        std::fs::create_dir_all(&dir).expect("a credentials directory");
+        let d = dir.to_str().expect("a UTF-8 path");
+        let tweezer = |args: &[&str]| stdout_of(&run("tweezer", args));
+        tweezer(&["cert", "ca", "--out", d, "--days", "2"]);
+        for name in ["server", "client"] {
+            tweezer(&[
+                "cert", "issue", "--ca", d, "--name", name, "--host", "127.0.0.1", "--host",
+                "localhost", "--out", d, "--days", "2",
+            ]);
+        }
+        for (role, name, tokens) in [
+            ("read", "read", "tokens"),
+            ("actor", "actor", "tokens"),
+            ("control", "control", "tokens"),
+            ("control", "stranger", "other-tokens"),
+        ] {
+            let out = format!("{d}/{name}.token");
+            let tokens = format!("{d}/{tokens}");
+            tweezer(&[
+                "token", "new", "--role", role, "--name", name, "--tokens", &tokens, "--out", &out,
+            ]);
+        }
+        let server = "cert = \"server.crt\"\nkey = \"server.key\"\ntokens = \"tokens\"\nca = \"ca.crt\"\ntoken_file = \"read.token\"\n";
+        let files = [
+            ("server", server.to_string()),
+            ("server-mtls", format!("{server}require_client_cert = true\n")),
+            ("server-plain", "plaintext = true\ntokens = \"tokens\"\n".into()),
+            ("read-plain", "plaintext = true\ntoken_file = \"read.token\"\n".into()),
+            (
+                "control-cert",
+                "ca = \"ca.crt\"\ntoken_file = \"control.token\"\ncert = \"client.crt\"\nkey = \"client.key\"\n".into(),
+            ),
+        ];
+        for (name, text) in files {
+            write(&dir.join(format!("{name}.toml")), &text);
+        }
+        for name in ["read", "actor", "control", "stranger"] {
+            write(
+                &dir.join(format!("{name}.toml")),
+                &format!("ca = \"ca.crt\"\ntoken_file = \"{name}.token\"\n"),
+            );
+        }
+        Credentials { dir }
+    })
+}
+
+/// Starts `learner serve` with `args` and the test deployment's server
+/// security file; returns it, once it listens, and the address it listens
+/// on.
 pub fn start_learner(args: &[&str]) -> (Child, String) {
-    let mut all = vec!["serve"];
+    let security = credentials().file("server");
+    let mut all = vec!["serve", "--security", &security];
     all.extend_from_slice(args);
-    start_service("learner", &all)
+    start_service("learner", &all, None)
 }
 
 /// Starts `hardware-agent serve --twin --greedy` on a free loopback port
-/// with `args` (`--rate`, `--records`, ...); returns it, once it listens,
-/// and the address it listens on.
+/// with the test deployment's server security file and `args` (`--rate`,
+/// `--records`, ...); returns it, once it listens, and the address it
+/// listens on.
 pub fn start_agent(args: &[&str]) -> (Child, String) {
-    let mut all = vec!["serve", "--twin", "--greedy", "--listen", "127.0.0.1:0"];
+    let security = credentials().file("server");
+    let mut all = vec![
+        "serve",
+        "--twin",
+        "--greedy",
+        "--listen",
+        "127.0.0.1:0",
+        "--security",
+        &security,
+    ];
     all.extend_from_slice(args);
-    start_service("hardware-agent", &all)
+    start_service("hardware-agent", &all, None)
 }
 
-/// Starts binary `bin` with `args`, waits for its first stdout line,
-/// `<bin> listening on ADDR`, and returns it with ADDR.
-fn start_service(bin: &str, args: &[&str]) -> (Child, String) {
+/// A channel to the service at `addr` (`host:port`) as the security file
+/// `name` says.
+pub async fn connect(addr: &str, name: &str) -> tweezer_rpc::AuthChannel {
+    credentials()
+        .client(name)
+        .connect(addr, Duration::from_secs(10))
+        .await
+        .unwrap_or_else(|e| panic!("cannot connect to {addr}: {e}"))
+}
+
+/// Starts binary `bin` with `args` (its standard error to `log`, if
+/// given), waits for its first stdout line, `<bin> listening on ADDR`, and
+/// returns it with ADDR.
+pub fn start_service(bin: &str, args: &[&str], log: Option<&Path>) -> (Child, String) {
+    let stderr = match log {
+        Some(path) => Stdio::from(
+            std::fs::File::create(path).unwrap_or_else(|e| panic!("cannot create the log: {e}")),
+        ),
+        None => Stdio::null(),
+    };
     let mut child = Command::new(binary(bin))
         .args(args)
         .stdout(Stdio::piped())
-        .stderr(Stdio::null())
+        .stderr(stderr)
         .spawn()
         .unwrap_or_else(|e| panic!("cannot start {bin}: {e}"));
     let mut line = String::new();
@@ -164,9 +275,12 @@ pub fn stop(mut child: Child) -> (ExitStatus, String) {
 /// The learner's status, or None while it cannot be reached.
 pub fn status(runtime: &tokio::runtime::Runtime, addr: &str) -> Option<pb::LearnerStatus> {
     runtime.block_on(async {
-        let mut client = LearnerClient::connect(format!("http://{addr}"))
+        let channel = credentials()
+            .client("read")
+            .connect(addr, Duration::from_secs(10))
             .await
             .ok()?;
+        let mut client = LearnerClient::new(channel);
         let status = client.get_status(pb::LearnerStatusRequest {}).await.ok()?;
         Some(status.into_inner())
     })

@@ -5,13 +5,13 @@
 use std::process::Child;
 use std::time::{Duration, Instant};
 use tonic::Code;
-use tonic::transport::Channel;
 use tonic_health::pb::HealthCheckRequest;
 use tonic_health::pb::health_check_response::ServingStatus;
 use tonic_health::pb::health_client::HealthClient;
 use tweezer_proto::pb;
 use tweezer_proto::pb::hardware_agent_client::HardwareAgentClient;
-use tweezer_system_tests::{signal, start_agent};
+use tweezer_rpc::AuthChannel;
+use tweezer_system_tests::{connect, signal, start_agent};
 
 /// The daemon, killed if the test fails before stopping it.
 struct Daemon(Child);
@@ -25,7 +25,7 @@ impl Drop for Daemon {
 
 fn start(records: &std::path::Path) -> (Daemon, String) {
     let (child, addr) = start_agent(&["--rate", "20", "--records", records.to_str().unwrap()]);
-    (Daemon(child), format!("http://{addr}"))
+    (Daemon(child), addr)
 }
 
 fn state(status: &pb::AgentStatus) -> pb::AgentState {
@@ -33,7 +33,7 @@ fn state(status: &pb::AgentStatus) -> pb::AgentState {
 }
 
 async fn wait_for(
-    client: &mut HardwareAgentClient<Channel>,
+    client: &mut HardwareAgentClient<AuthChannel>,
     want: pb::AgentState,
     within: Duration,
 ) -> pb::AgentStatus {
@@ -53,7 +53,7 @@ async fn wait_for(
 }
 
 /// The services gRPC reflection lists.
-async fn list_services(channel: Channel) -> Vec<String> {
+async fn list_services(channel: AuthChannel) -> Vec<String> {
     use tonic_reflection::pb::v1::ServerReflectionRequest;
     use tonic_reflection::pb::v1::server_reflection_client::ServerReflectionClient;
     use tonic_reflection::pb::v1::server_reflection_request::MessageRequest;
@@ -87,17 +87,13 @@ fn seeded(seed: u64) -> pb::StartEpisodeRequest {
 async fn the_daemon_runs_episodes_stops_them_and_refuses_what_it_must() {
     let dir = tempfile::tempdir().unwrap();
     let (mut daemon, addr) = start(dir.path());
-    let mut client = HardwareAgentClient::connect(addr.clone()).await.unwrap();
+    let mut client = HardwareAgentClient::new(connect(&addr, "control").await);
 
     let status = wait_for(&mut client, pb::AgentState::Idle, Duration::from_secs(5)).await;
     assert_eq!(status.policy, "greedy baseline");
 
     // The standard services: health and reflection.
-    let channel = Channel::from_shared(addr.clone())
-        .unwrap()
-        .connect()
-        .await
-        .unwrap();
+    let channel = connect(&addr, "read").await;
     let health = HealthClient::new(channel.clone())
         .check(HealthCheckRequest {
             service: "tweezer.v1.HardwareAgent".into(),

@@ -4,15 +4,20 @@
 
 use serde_json::Value;
 use tweezer_system_tests::{
-    TINY_ENV, run, start_agent, start_learner, stderr_of_failure, stdout_of, stop, write,
+    TINY_ENV, credentials, run, start_agent, start_learner, stderr_of_failure, stdout_of, stop,
+    write,
 };
 
 fn json(out: &str) -> Value {
     serde_json::from_str(out.lines().last().expect("a line of output")).unwrap()
 }
 
+/// `tweezer` with a control token.
 fn tweezer(args: &[&str]) -> std::process::Output {
-    run("tweezer", args)
+    let security = credentials().file("control");
+    let mut all = vec!["--security", security.as_str()];
+    all.extend_from_slice(args);
+    run("tweezer", &all)
 }
 
 #[test]
@@ -148,7 +153,7 @@ fn the_cli_reads_the_learner_and_drives_the_agent() {
     // Nothing listening: the error names the address and the option.
     let err = stderr_of_failure(&tweezer(&["agent", "--agent", "127.0.0.1:1", "status"]));
     assert!(
-        err.contains("cannot reach the hardware agent at http://127.0.0.1:1"),
+        err.contains("the hardware agent: cannot reach https://127.0.0.1:1"),
         "{err}"
     );
     assert!(err.contains("--agent"), "{err}");

@@ -4,7 +4,7 @@
 
 use serde_json::Value;
 use tweezer_system_tests::{
-    TINY_ENV, run, start_learner, stderr_of_failure, stdout_of, stop, write,
+    TINY_ENV, credentials, run, start_learner, stderr_of_failure, stdout_of, stop, write,
 };
 
 #[test]
@@ -28,7 +28,7 @@ fn the_agent_drives_the_twin_with_a_learner_snapshot_and_refuses_what_does_not_f
             &format!(
                 "[env]\nmin_free_spheres = 0\nmax_free_spheres = 0\ntime_limit = 8\n\
                  [env.image]\nwidth = {}\nheight = {}\n\
-                 [policy]\nsource = \"learner\"\nlearner = \"http://{addr}\"\nsnapshot = {snapshot:?}\n",
+                 [policy]\nsource = \"learner\"\nlearner = \"{addr}\"\nsnapshot = {snapshot:?}\n",
                 image[0], image[1]
             ),
         );
@@ -37,6 +37,8 @@ fn the_agent_drives_the_twin_with_a_learner_snapshot_and_refuses_what_does_not_f
             &[
                 "--config",
                 &config,
+                "--security",
+                &credentials().file("read"),
                 "run",
                 "--twin",
                 "--rate",
@@ -55,7 +57,7 @@ fn the_agent_drives_the_twin_with_a_learner_snapshot_and_refuses_what_does_not_f
     let header: Value = serde_json::from_str(record.lines().next().unwrap()).unwrap();
     let policy = header["header"]["policy"].as_str().unwrap();
     assert!(
-        policy.starts_with(&format!("learner http://{addr} snapshot v")),
+        policy.starts_with(&format!("learner {addr} snapshot v")),
         "{policy}"
     );
 

@@ -4,7 +4,9 @@
 
 use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
-use tweezer_system_tests::{TINY_ENV, binary, free_port, start_learner, status, stop, write};
+use tweezer_system_tests::{
+    TINY_ENV, binary, credentials, free_port, start_learner, status, stop, write,
+};
 
 #[test]
 fn an_actor_streams_through_a_learner_restart_without_losing_or_repeating_steps() {
@@ -23,7 +25,7 @@ fn an_actor_streams_through_a_learner_restart_without_losing_or_repeating_steps(
     let actor_config = write(
         &dir.path().join("actor.toml"),
         &format!(
-            "{TINY_ENV}\n[actor]\nlearner = \"http://{addr}\"\nid = \"streaming-test\"\n\
+            "{TINY_ENV}\n[actor]\nlearner = \"{addr}\"\nid = \"streaming-test\"\n\
              envs = 4\nbatch_steps = 100\nmax_unacked = 2\n\
              reconnect_initial_ms = 50\nreconnect_max_ms = 400\n"
         ),
@@ -41,6 +43,7 @@ fn an_actor_streams_through_a_learner_restart_without_losing_or_repeating_steps(
     ]);
     let mut actor = Command::new(binary("actor"))
         .args(["--config", &actor_config, "run", "--steps", "6000"])
+        .args(["--security", &credentials().file("actor")])
         .stdout(Stdio::piped())
         .stderr(Stdio::piped())
         .spawn()

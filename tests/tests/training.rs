@@ -7,7 +7,8 @@ use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 use tweezer_proto::pb;
 use tweezer_system_tests::{
-    TINY_ENV, binary, free_port, signal, start_learner, status, stop, write,
+    TINY_ENV, binary, credentials, free_port, run, signal, start_learner, status, stdout_of, stop,
+    write,
 };
 
 /// Processes killed when a test ends early.
@@ -25,6 +26,7 @@ impl Drop for Processes {
 fn start_actor(config: &str, id: &str, seed: u64) -> Child {
     Command::new(binary("actor"))
         .args(["--config", config, "run", "--id", id])
+        .args(["--security", &credentials().file("actor")])
         .args(["--seed", &seed.to_string()])
         .stdout(Stdio::piped())
         .stderr(Stdio::null())
@@ -102,7 +104,7 @@ fn two_actors_train_through_the_sigkill_of_an_actor_and_of_the_learner() {
     let actor_config = write(
         &dir.path().join("actor.toml"),
         &format!(
-            "{TINY_ENV}\n[actor]\nlearner = \"http://{addr}\"\nenvs = 4\nbatch_steps = 50\n\
+            "{TINY_ENV}\n[actor]\nlearner = \"{addr}\"\nenvs = 4\nbatch_steps = 50\n\
              max_unacked = 2\nreconnect_initial_ms = 50\nreconnect_max_ms = 400\n"
         ),
     );
@@ -131,6 +133,31 @@ fn two_actors_train_through_the_sigkill_of_an_actor_and_of_the_learner() {
         2 * minute,
         |s| s.connected_actors == 2 && !s.explore_uniformly && s.latest_snapshot >= 3,
     );
+    // The operator sees each actor.
+    let security = credentials().file("read");
+    let listed = stdout_of(&run(
+        "tweezer",
+        &[
+            "--json",
+            "--security",
+            &security,
+            "learner",
+            "--learner",
+            &addr,
+            "actors",
+        ],
+    ));
+    let actors: Vec<serde_json::Value> = listed
+        .lines()
+        .map(|l| serde_json::from_str(l).unwrap())
+        .collect();
+    let ids: Vec<&str> = actors.iter().map(|a| a["id"].as_str().unwrap()).collect();
+    assert_eq!(ids, ["actor-a", "actor-b"], "{listed}");
+    for actor in &actors {
+        assert_eq!(actor["streams"], 1, "{listed}");
+        assert!(actor["steps"].as_u64().unwrap() > 0, "{listed}");
+        assert!(actor["idle_seconds"].as_f64().unwrap() < 30.0, "{listed}");
+    }
 
     // SIGKILL of one actor: the learner trains on; the actor, restarted
     // under its id, rejoins and its steps are stored again.
@@ -251,6 +278,9 @@ fn sigint_stops_a_one_command_run_with_a_loadable_final_checkpoint() {
         "train.toml",
         "config.toml",
         "actor.toml",
+        "security/learner.toml",
+        "security/read.toml",
+        "security/read.token",
         "report/eval.md",
         "report/eval.json",
     ] {

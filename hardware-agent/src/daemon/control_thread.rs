@@ -3,6 +3,7 @@
 
 use super::status::{Shared, State};
 use std::sync::Arc;
+use std::sync::atomic::Ordering;
 use std::sync::mpsc::{Receiver, Sender, channel};
 use std::thread::JoinHandle;
 use tokio::sync::oneshot;
@@ -15,6 +16,7 @@ use tweezer_hardware_agent::overlay::OverlaySpec;
 use tweezer_hardware_agent::policy_source::{LoadedPolicy, PolicyChoice};
 use tweezer_hardware_agent::record::EpisodeHeader;
 use tweezer_proto::{action_to_wire, observation_to_wire, pb};
+use tweezer_rpc::Security;
 
 /// Where an episode's target lies.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -57,6 +59,8 @@ pub struct ControlThread {
     instrument: Instrument,
     policy: LoadedPolicy,
     config: AgentConfig,
+    /// How learners' snapshots are fetched.
+    security: Security,
     shared: Arc<Shared>,
 }
 
@@ -66,6 +70,7 @@ impl ControlThread {
         instrument: Instrument,
         policy: LoadedPolicy,
         config: AgentConfig,
+        security: Security,
         shared: Arc<Shared>,
     ) -> std::io::Result<(Sender<Job>, JoinHandle<()>)> {
         let (jobs, inbox) = channel();
@@ -73,6 +78,7 @@ impl ControlThread {
             instrument,
             policy,
             config,
+            security,
             shared,
         };
         let handle = std::thread::Builder::new()
@@ -113,7 +119,12 @@ impl ControlThread {
 
     /// Loads a policy; the service has claimed the agent (Loading).
     fn load_policy(&mut self, choice: PolicyChoice) -> Result<(), JobError> {
-        let loaded = LoadedPolicy::choose(&choice, &self.config.policy, &self.config.env);
+        let loaded = LoadedPolicy::choose(
+            &choice,
+            &self.config.policy,
+            &self.config.env,
+            Some(&self.security),
+        );
         let mut status = self.shared.status();
         status.state = State::Idle;
         let policy = loaded.map_err(|e| JobError::Invalid(e.to_string()))?;
@@ -235,6 +246,11 @@ impl ControlThread {
                     _ => String::new(),
                 };
                 status.period_ms = summary.timing.period_ms_mean;
+                match summary.ending {
+                    Ending::Success => shared_count(&self.shared.successes),
+                    Ending::Collision => shared_count(&self.shared.collisions),
+                    _ => {}
+                }
                 status.last_ending = Some(summary.ending);
             }
             Err(e) => {
@@ -247,8 +263,14 @@ impl ControlThread {
     }
 }
 
+fn shared_count(counter: &std::sync::atomic::AtomicU64) {
+    counter.fetch_add(1, Ordering::Relaxed);
+}
+
 /// Updates the status and sends telemetry for one step.
 fn report_step(shared: &Shared, episode: u64, log: &StepLog) {
+    shared.steps.fetch_add(1, Ordering::Relaxed);
+    shared.latency_seconds.observe(log.latency_ms / 1e3);
     {
         let mut status = shared.status();
         status.step = log.step + 1;

@@ -2,12 +2,14 @@
 //! request, the stopper and the telemetry feed.
 
 use serialport::TTYPort;
+use std::sync::atomic::AtomicU64;
 use std::sync::{Mutex, MutexGuard};
 use tokio::sync::broadcast;
 use tweezer_hardware_agent::control::{Ending, Halt, HaltKind};
 use tweezer_hardware_agent::policy_source::LoadedPolicy;
 use tweezer_hardware_agent::stages::Stopper;
 use tweezer_proto::pb;
+use tweezer_rpc::{Histogram, latency_buckets};
 
 /// Telemetry messages kept for a slow subscriber before it skips ahead.
 const TELEMETRY_BACKLOG: usize = 256;
@@ -45,6 +47,14 @@ pub struct Shared {
     pub halt: Halt,
     pub stopper: Stopper<TTYPort>,
     pub telemetry: broadcast::Sender<pb::Telemetry>,
+    /// Seconds from a frame's capture to the stages' command, per step.
+    pub latency_seconds: Histogram,
+    /// Steps run, all episodes together.
+    pub steps: AtomicU64,
+    /// Episodes that reached the target.
+    pub successes: AtomicU64,
+    /// Episodes that ended in a collision.
+    pub collisions: AtomicU64,
 }
 
 impl Shared {
@@ -67,6 +77,10 @@ impl Shared {
             halt: Halt::default(),
             stopper,
             telemetry: broadcast::channel(TELEMETRY_BACKLOG).0,
+            latency_seconds: Histogram::new(latency_buckets()),
+            steps: AtomicU64::new(0),
+            successes: AtomicU64::new(0),
+            collisions: AtomicU64::new(0),
         }
     }
 

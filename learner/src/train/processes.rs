@@ -103,15 +103,21 @@ fn log_tail(path: &Path) -> String {
 }
 
 /// Starts `learner serve` for `run_dir` (fresh from its `config.toml`, or
-/// resuming) on a free loopback port; returns it once it listens.
+/// resuming) on a free loopback port with the security file `security`;
+/// returns it once it listens.
 pub async fn start_learner(
     run_dir: &Path,
     logs: &Path,
     resume: bool,
+    security: &Path,
 ) -> anyhow::Result<(Process, SocketAddr)> {
     let exe = std::env::current_exe().context("cannot find this learner binary")?;
     let mut command = Command::new(exe);
-    command.arg("serve").args(["--listen", "127.0.0.1:0"]);
+    command
+        .arg("serve")
+        .args(["--listen", "127.0.0.1:0"])
+        .arg("--security")
+        .arg(security);
     if resume {
         command.arg("--resume").arg(run_dir);
     } else {
@@ -148,6 +154,8 @@ pub struct ActorLauncher {
     pub config: PathBuf,
     /// The learner's address.
     pub learner: SocketAddr,
+    /// Their security file.
+    pub security: PathBuf,
     /// Where their logs and reports go.
     pub logs: PathBuf,
 }
@@ -165,7 +173,9 @@ impl ActorLauncher {
             .arg("--config")
             .arg(&self.config)
             .arg("run")
-            .args(["--learner", &format!("http://{}", self.learner)])
+            .arg("--security")
+            .arg(&self.security)
+            .args(["--learner", &self.learner.to_string()])
             .args(["--id", &name])
             .args(["--seed", &seed.to_string()]);
         Process::spawn(&name, command, &self.logs, stdout.into())

@@ -1,0 +1,27 @@
+//! The gRPC edge every process shares. A security file says how a process
+//! listens and connects ([`Security`]): TLS with the deployment's CA
+//! (mutual TLS when a service requires client certificates), or plain TCP
+//! when the file says so; bearer tokens with roles ([`Role`]) checked on
+//! every call ([`access`] lists what each RPC needs). Services get health
+//! checking, reflection and a span per request ([`ServerSecurity::serve`]);
+//! clients get channels that send their token ([`ClientSecurity`]); each
+//! process exposes its [`Prometheus`] metrics the same way.
+
+pub mod access;
+mod authorize;
+pub mod certs;
+mod client;
+mod metrics_endpoint;
+mod private_file;
+pub mod prometheus;
+mod security;
+mod server;
+mod tokens;
+
+pub use authorize::{AuthLayer, Caller};
+pub use client::{AuthChannel, Bearer, ClientSecurity, ConnectError, hint};
+pub use private_file::{append_private, create_private};
+pub use prometheus::{Figure, Histogram, Prometheus, latency_buckets};
+pub use security::{Pem, SECURITY_ENV, Security, SecurityError, SecurityFile, TOKEN_ENV};
+pub use server::ServerSecurity;
+pub use tokens::{Role, Token, TokenEntry, TokenError, Tokens};

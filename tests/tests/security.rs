@@ -1,0 +1,469 @@
+//! Every service's authentication and authorisation, against real
+//! processes over TLS: each RPC called with no token, an unknown token, and
+//! a token of each role; health open to all; mutual TLS; plaintext only as
+//! the security file says; tokens never in the logs; the CLI's errors.
+
+use std::path::Path;
+use std::time::Duration;
+use tonic::Code;
+use tonic::metadata::{Ascii, MetadataValue};
+use tonic::service::Interceptor;
+use tonic::service::interceptor::InterceptedService;
+use tonic::transport::Channel;
+use tweezer_proto::pb;
+use tweezer_proto::pb::hardware_agent_client::HardwareAgentClient;
+use tweezer_proto::pb::learner_client::LearnerClient;
+use tweezer_rpc::Role;
+use tweezer_rpc::access::{Access, RULES, access};
+use tweezer_system_tests::{
+    TINY_ENV, credentials, run, start_service, stderr_of_failure, stdout_of, stop, write,
+};
+
+/// Sends the token of the file it was made from, or none.
+#[derive(Clone)]
+struct Header(Option<MetadataValue<Ascii>>);
+
+impl Interceptor for Header {
+    fn call(
+        &mut self,
+        mut request: tonic::Request<()>,
+    ) -> Result<tonic::Request<()>, tonic::Status> {
+        if let Some(value) = &self.0 {
+            request
+                .metadata_mut()
+                .insert("authorization", value.clone());
+        }
+        Ok(request)
+    }
+}
+
+type Ch = InterceptedService<Channel, Header>;
+
+/// Who calls: no token, a token no service lists, or one of each role.
+const CALLERS: [(&str, Option<Role>); 5] = [
+    ("none", None),
+    ("stranger", None),
+    ("read", Some(Role::Read)),
+    ("actor", Some(Role::Actor)),
+    ("control", Some(Role::Control)),
+];
+
+fn token(name: &str) -> Option<MetadataValue<Ascii>> {
+    if name == "none" {
+        return None;
+    }
+    let path = credentials().dir.join(format!("{name}.token"));
+    let secret = std::fs::read_to_string(path).unwrap();
+    Some(format!("Bearer {}", secret.trim()).parse().unwrap())
+}
+
+async fn channel(addr: &str, caller: &str) -> Ch {
+    let channel = credentials()
+        .client("read")
+        .endpoint(addr)
+        .unwrap()
+        .connect()
+        .await
+        .unwrap();
+    InterceptedService::new(channel, Header(token(caller)))
+}
+
+/// Calls `method` with a request that changes as little as it can; the
+/// status, or OK.
+async fn call(channel: Ch, method: &str) -> Result<(), tonic::Status> {
+    let mut learner = LearnerClient::new(channel.clone());
+    let mut agent = HardwareAgentClient::new(channel.clone());
+    let name = method.rsplit('/').next().unwrap();
+    match method.split('/').nth(1).unwrap() {
+        "tweezer.v1.Learner" => match name {
+            "StreamSteps" => learner
+                .stream_steps(tokio_stream::iter(Vec::<pb::StepBatch>::new()))
+                .await
+                .map(drop),
+            "GetSnapshot" => learner
+                .get_snapshot(pb::SnapshotRequest {
+                    selector: Some(pb::snapshot_request::Selector::Version(1)),
+                })
+                .await
+                .map(drop),
+            "GetStatus" => learner
+                .get_status(pb::LearnerStatusRequest {})
+                .await
+                .map(drop),
+            "ListSnapshots" => learner
+                .list_snapshots(pb::ListSnapshotsRequest {})
+                .await
+                .map(drop),
+            "PauseLearning" => learner
+                .pause_learning(pb::PauseLearningRequest {})
+                .await
+                .map(drop),
+            "ResumeLearning" => learner
+                .resume_learning(pb::ResumeLearningRequest {})
+                .await
+                .map(drop),
+            "Checkpoint" => learner.checkpoint(pb::CheckpointRequest {}).await.map(drop),
+            other => panic!("the matrix does not call Learner/{other}: add it"),
+        },
+        "tweezer.v1.HardwareAgent" => match name {
+            "GetStatus" => agent.get_status(pb::AgentStatusRequest {}).await.map(drop),
+            "StreamTelemetry" => agent
+                .stream_telemetry(pb::TelemetryRequest {})
+                .await
+                .map(drop),
+            "StartEpisode" => agent
+                .start_episode(pb::StartEpisodeRequest {
+                    target: Some(pb::start_episode_request::Target::RelativeUm(pb::Vector2 {
+                        x: f64::NAN,
+                        y: 0.0,
+                    })),
+                    twin_seed: None,
+                })
+                .await
+                .map(drop),
+            "StopEpisode" => agent
+                .stop_episode(pb::StopEpisodeRequest {})
+                .await
+                .map(drop),
+            "EmergencyStop" => agent
+                .emergency_stop(pb::EmergencyStopRequest {
+                    reason: "auth matrix".into(),
+                })
+                .await
+                .map(drop),
+            "ResetEmergencyStop" => agent
+                .reset_emergency_stop(pb::ResetEmergencyStopRequest {})
+                .await
+                .map(drop),
+            "LoadPolicy" => agent
+                .load_policy(pb::LoadPolicyRequest {
+                    source: Some(pb::load_policy_request::Source::File(
+                        "/no/such.safetensors".into(),
+                    )),
+                })
+                .await
+                .map(drop),
+            "SetOverlay" => agent
+                .set_overlay(pb::SetOverlayRequest::default())
+                .await
+                .map(drop),
+            other => panic!("the matrix does not call HardwareAgent/{other}: add it"),
+        },
+        "grpc.reflection.v1.ServerReflection" => {
+            use tonic_reflection::pb::v1::ServerReflectionRequest;
+            use tonic_reflection::pb::v1::server_reflection_client::ServerReflectionClient;
+            use tonic_reflection::pb::v1::server_reflection_request::MessageRequest;
+            let request = ServerReflectionRequest {
+                host: String::new(),
+                message_request: Some(MessageRequest::ListServices(String::new())),
+            };
+            let mut replies = ServerReflectionClient::new(channel)
+                .server_reflection_info(tokio_stream::iter([request]))
+                .await?
+                .into_inner();
+            replies.message().await.map(drop)
+        }
+        other => panic!("no service {other}"),
+    }
+}
+
+/// Every RPC of `service` (and reflection) with every caller: refused as
+/// the rules say, with the right code, and let through otherwise.
+async fn check_matrix(addr: &str, service: &str) -> usize {
+    let mut checked = 0;
+    let methods = RULES
+        .iter()
+        .filter(|(path, _)| path.contains(service) || path.contains("ServerReflection"));
+    for (method, needed) in methods {
+        assert_eq!(access(method), Access::Needs(*needed));
+        for (caller, role) in CALLERS {
+            let result = call(channel(addr, caller).await, method).await;
+            let code = result.as_ref().err().map(tonic::Status::code);
+            match role {
+                None => assert_eq!(
+                    code,
+                    Some(Code::Unauthenticated),
+                    "{method} as {caller}: {result:?}"
+                ),
+                Some(role) if role.grants(*needed) => assert!(
+                    !matches!(code, Some(Code::Unauthenticated | Code::PermissionDenied)),
+                    "{method} as {caller}: {result:?}"
+                ),
+                Some(_) => {
+                    let status = result.unwrap_err();
+                    assert_eq!(
+                        status.code(),
+                        Code::PermissionDenied,
+                        "{method} as {caller}"
+                    );
+                    assert!(
+                        status.message().contains(&format!("needs `{needed}`")),
+                        "{}",
+                        status.message()
+                    );
+                }
+            }
+            checked += 1;
+        }
+    }
+    checked
+}
+
+/// The health check, with no token.
+async fn healthy(channel: Ch, service: &str) -> bool {
+    use tonic_health::pb::health_check_response::ServingStatus;
+    tonic_health::pb::health_client::HealthClient::new(channel)
+        .check(tonic_health::pb::HealthCheckRequest {
+            service: service.into(),
+        })
+        .await
+        .map(|r| r.into_inner().status == ServingStatus::Serving as i32)
+        .unwrap_or(false)
+}
+
+fn learner_config(dir: &Path) -> String {
+    write(
+        &dir.join("learner.toml"),
+        &format!("{TINY_ENV}\n[learner]\nlisten = \"127.0.0.1:0\"\n"),
+    )
+}
+
+fn start_learner(dir: &Path, security: &str, run: &str) -> (std::process::Child, String) {
+    let config = learner_config(dir);
+    let run_dir = dir.join(run);
+    let log = dir.join(format!("{run}.log"));
+    start_service(
+        "learner",
+        &[
+            "serve",
+            "--security",
+            &credentials().file(security),
+            "--config",
+            &config,
+            "--run-dir",
+            run_dir.to_str().unwrap(),
+        ],
+        Some(&log),
+    )
+}
+
+fn secrets() -> Vec<String> {
+    ["read", "actor", "control", "stranger"]
+        .iter()
+        .map(|name| {
+            std::fs::read_to_string(credentials().dir.join(format!("{name}.token")))
+                .unwrap()
+                .trim()
+                .to_string()
+        })
+        .collect()
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn every_learner_rpc_needs_its_role_and_tokens_stay_out_of_the_logs() {
+    let dir = tempfile::tempdir().unwrap();
+    let (learner, addr) = start_learner(dir.path(), "server", "run");
+    let checked = check_matrix(&addr, "tweezer.v1.Learner").await;
+    assert_eq!(checked, 8 * CALLERS.len());
+    assert!(healthy(channel(&addr, "none").await, "tweezer.v1.Learner").await);
+    assert!(healthy(channel(&addr, "none").await, "").await);
+    let (status, _) = stop(learner);
+    assert!(status.success());
+    let log = std::fs::read_to_string(dir.path().join("run.log")).unwrap();
+    assert!(log.contains("call refused"), "{log}");
+    assert!(
+        log.contains("caller=control"),
+        "control calls are logged with the token's name"
+    );
+    for secret in secrets() {
+        assert!(!log.contains(&secret), "a token reached the log");
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn every_hardware_agent_rpc_needs_its_role() {
+    let dir = tempfile::tempdir().unwrap();
+    let log = dir.path().join("agent.log");
+    let security = credentials().file("server");
+    let (mut agent, addr) = start_service(
+        "hardware-agent",
+        &[
+            "serve",
+            "--twin",
+            "--greedy",
+            "--listen",
+            "127.0.0.1:0",
+            "--security",
+            &security,
+            "--records",
+            dir.path().join("records").to_str().unwrap(),
+        ],
+        Some(&log),
+    );
+    let checked = check_matrix(&addr, "tweezer.v1.HardwareAgent").await;
+    assert_eq!(checked, 9 * CALLERS.len());
+    assert!(healthy(channel(&addr, "none").await, "tweezer.v1.HardwareAgent").await);
+    let _ = agent.kill();
+    let _ = agent.wait();
+    let log = std::fs::read_to_string(&log).unwrap();
+    for secret in secrets() {
+        assert!(!log.contains(&secret), "a token reached the log");
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn mutual_tls_refuses_clients_without_a_certificate() {
+    let dir = tempfile::tempdir().unwrap();
+    let (learner, addr) = start_learner(dir.path(), "server-mtls", "run");
+    let status = async |name: &str| -> Result<(), String> {
+        let channel = credentials()
+            .client(name)
+            .connect(&addr, Duration::from_secs(10))
+            .await
+            .map_err(|e| e.to_string())?;
+        LearnerClient::new(channel)
+            .get_status(pb::LearnerStatusRequest {})
+            .await
+            .map(drop)
+            .map_err(|e| e.to_string())
+    };
+    status("control-cert").await.unwrap();
+    let err = status("read").await.unwrap_err();
+    assert!(
+        err.to_lowercase().contains("certificate"),
+        "refused for want of a certificate: {err}"
+    );
+
+    // The CLI says what to do.
+    let security = credentials().file("read");
+    let cli = run(
+        "tweezer",
+        &[
+            "--security",
+            &security,
+            "learner",
+            "--learner",
+            &addr,
+            "status",
+        ],
+    );
+    let err = stderr_of_failure(&cli);
+    assert!(err.contains("client certificate"), "{err}");
+    assert!(stop(learner).0.success());
+}
+
+#[test]
+fn plaintext_only_as_the_file_says_and_the_cli_names_what_is_wrong() {
+    let dir = tempfile::tempdir().unwrap();
+    let (tls_learner, tls_addr) = start_learner(dir.path(), "server", "tls");
+    let (plain_learner, plain_addr) = start_learner(dir.path(), "server-plain", "plain");
+    let tweezer = |security: &str, addr: &str, command: &str| {
+        let security = credentials().file(security);
+        run(
+            "tweezer",
+            &[
+                "--json",
+                "--security",
+                &security,
+                "learner",
+                "--learner",
+                addr,
+                command,
+            ],
+        )
+    };
+
+    // Plaintext with a token works where the service says plaintext; the
+    // service warns in its log.
+    let out = stdout_of(&tweezer("read-plain", &plain_addr, "status"));
+    assert!(out.contains("steps_inserted"), "{out}");
+    let log = std::fs::read_to_string(dir.path().join("plain.log")).unwrap();
+    assert!(log.contains("TLS is off"), "{log}");
+
+    // A TLS client at a plaintext service, and the reverse.
+    let err = stderr_of_failure(&tweezer("read", &plain_addr, "status"));
+    assert!(err.contains("does not speak TLS"), "{err}");
+    let err = stderr_of_failure(&tweezer("read-plain", &tls_addr, "status"));
+    assert!(err.contains("plaintext"), "{err}");
+
+    // A scheme that contradicts the file.
+    let err = stderr_of_failure(&tweezer("read", &format!("http://{tls_addr}"), "status"));
+    assert!(err.contains("write https://"), "{err}");
+
+    // Bad tokens and wrong roles.
+    let err = stderr_of_failure(&tweezer("stranger", &tls_addr, "status"));
+    assert!(err.contains("unknown token"), "{err}");
+    let err = stderr_of_failure(&tweezer("read", &tls_addr, "pause"));
+    assert!(
+        err.contains("the token `read` has the `read` role") && err.contains("needs `control`"),
+        "{err}"
+    );
+    let out = stdout_of(&tweezer("control", &tls_addr, "pause"));
+    assert!(out.contains("\"paused\":true"), "{out}");
+
+    // No security file at all.
+    let cli = std::process::Command::new(tweezer_system_tests::binary("tweezer"))
+        .args(["learner", "--learner", &tls_addr, "status"])
+        .env_remove(tweezer_rpc::SECURITY_ENV)
+        .output()
+        .unwrap();
+    let err = stderr_of_failure(&cli);
+    assert!(err.contains("no security file"), "{err}");
+    assert!(stop(tls_learner).0.success());
+    assert!(stop(plain_learner).0.success());
+}
+
+#[test]
+fn a_service_without_its_tokens_or_certificate_does_not_start() {
+    let dir = tempfile::tempdir().unwrap();
+    let config = learner_config(dir.path());
+    let missing = write(
+        &dir.path().join("no-tokens.toml"),
+        &format!(
+            "cert = {:?}\nkey = {:?}\n",
+            credentials().dir.join("server.crt"),
+            credentials().dir.join("server.key")
+        ),
+    );
+    let refused = run(
+        "learner",
+        &[
+            "serve",
+            "--security",
+            &missing,
+            "--config",
+            &config,
+            "--run-dir",
+            "unused",
+        ],
+    );
+    let err = stderr_of_failure(&refused);
+    assert!(err.contains("`tokens` is not set"), "{err}");
+    let garbled = write(&dir.path().join("garbled.crt"), "not a certificate");
+    let bad_cert = write(
+        &dir.path().join("bad-cert.toml"),
+        &format!(
+            "cert = {garbled:?}\nkey = {:?}\ntokens = {:?}\n",
+            credentials().dir.join("server.key"),
+            credentials().dir.join("tokens")
+        ),
+    );
+    let refused = run(
+        "learner",
+        &[
+            "serve",
+            "--security",
+            &bad_cert,
+            "--config",
+            &config,
+            "--run-dir",
+            "unused",
+        ],
+    );
+    let err = stderr_of_failure(&refused);
+    assert!(
+        err.contains("`cert`") && err.contains("bad-cert.toml"),
+        "{err}"
+    );
+    assert!(!Path::new("unused").exists());
+}
