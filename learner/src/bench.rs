@@ -1,17 +1,23 @@
 //! `learner bench`: how fast the learner's parts run on this machine.
 
 use crate::batch::to_tensors;
-use crate::loopback::{batches, serve};
+use crate::loopback::batches;
 use crate::replay::{Replay, ReplayConfig};
+use crate::service::LearnerService;
 use crate::shared::Shared;
 use crate::td3::{Td3, Td3Config};
+use crate::train::Credentials;
 use burn::tensor::{Device, Distribution, Tensor};
 use serde::Serialize;
+use std::path::Path;
 use std::sync::Arc;
-use std::time::Instant;
+use std::time::{Duration, Instant};
+use tokio::net::TcpListener;
 use tweezer_gym::{ConfigError, EnvConfig, ObservationBounds, RandomSteps, Renderer, SplitMix64};
 use tweezer_proto::pb;
 use tweezer_proto::pb::learner_client::LearnerClient;
+use tweezer_proto::pb::learner_server::LearnerServer;
+use tweezer_rpc::{ClientSecurity, Security, ServerSecurity};
 
 /// Benchmark figures. Times are means over the timed repetitions.
 #[derive(Debug, Serialize)]
@@ -40,8 +46,11 @@ pub struct LearnerBench {
     /// Updates timed.
     pub updates_timed: usize,
     /// Transitions per second taken in over real gRPC on loopback from 8
-    /// concurrent actor streams, learner updates paused.
+    /// concurrent actor streams, learner updates paused: TLS and tokens, as
+    /// deployed.
     pub ingest_transitions_per_sec: f64,
+    /// The same over plain TCP (tokens still checked).
+    pub ingest_plaintext_transitions_per_sec: f64,
 }
 
 fn mean(v: &[f64]) -> f64 {
@@ -66,8 +75,11 @@ fn filled_replay(env: &EnvConfig, capacity: usize) -> Result<Replay, ConfigError
 }
 
 /// Transitions per second through 8 concurrent `StreamSteps` calls on
-/// loopback into a replay of the paper's capacity, without rate limiting.
-fn ingest_rate(env: &EnvConfig) -> anyhow::Result<f64> {
+/// loopback into a replay of the paper's capacity, without rate limiting,
+/// secured by the security files `server` and `client`.
+fn ingest_rate(env: &EnvConfig, server: &Path, client: &Path) -> anyhow::Result<f64> {
+    let server = ServerSecurity::load(&Security::load(Some(server))?)?;
+    let client = ClientSecurity::load(&Security::load(Some(client))?)?;
     let streams = 8;
     let per_stream: Vec<Vec<pb::StepBatch>> = (0..streams)
         .map(|k| batches(env, &format!("bench-{k}"), 16, 40, 256, k))
@@ -82,13 +94,18 @@ fn ingest_rate(env: &EnvConfig) -> anyhow::Result<f64> {
             None,
             ObservationBounds::for_config(env),
         ));
-        let addr = serve(ingest.clone()).await?;
+        let listener = TcpListener::bind("127.0.0.1:0").await?;
+        let addr = listener.local_addr()?.to_string();
+        let service = LearnerServer::new(LearnerService::new(ingest.clone()));
+        tokio::spawn(server.serve(listener, service, std::future::pending()));
         let started = Instant::now();
         let tasks: Vec<_> = per_stream
             .into_iter()
             .map(|sent| {
+                let (client, addr) = (client.clone(), addr.clone());
                 tokio::spawn(async move {
-                    let mut client = LearnerClient::connect(format!("http://{addr}")).await?;
+                    let channel = client.connect(&addr, Duration::from_secs(10)).await?;
+                    let mut client = LearnerClient::new(channel);
                     let mut acks = client
                         .stream_steps(tokio_stream::iter(sent))
                         .await?
@@ -165,6 +182,18 @@ pub fn run(
             std::hint::black_box(action.into_data());
         })
     };
+    // The ingest runs secured as deployed: the run's credentials, and
+    // plaintext files beside them.
+    let dir = tempfile::tempdir()?;
+    let credentials = Credentials::provision(dir.path())?;
+    let security = dir.path().join(crate::train::SECURITY_DIR);
+    let plain_server = security.join("plain-learner.toml");
+    let plain_client = security.join("plain-actor.toml");
+    std::fs::write(&plain_server, "plaintext = true\ntokens = \"tokens\"\n")?;
+    std::fs::write(
+        &plain_client,
+        "plaintext = true\ntoken_file = \"actor.token\"\n",
+    )?;
     Ok(LearnerBench {
         update_ms_mean,
         critic_step_ms: mean(&critic),
@@ -176,6 +205,7 @@ pub fn run(
         resolution: [env.image.width, env.image.height],
         batch_size,
         updates_timed: updates,
-        ingest_transitions_per_sec: ingest_rate(env)?,
+        ingest_transitions_per_sec: ingest_rate(env, &credentials.learner, &credentials.actor)?,
+        ingest_plaintext_transitions_per_sec: ingest_rate(env, &plain_server, &plain_client)?,
     })
 }

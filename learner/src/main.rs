@@ -267,8 +267,12 @@ fn main() -> anyhow::Result<()> {
                     report.replay_bytes_per_transition, report.replay_capacity
                 );
                 println!(
-                    "gRPC ingest, 8 streams   {:.0} transitions/s",
+                    "gRPC ingest, 8 streams   {:.0} transitions/s (TLS, tokens)",
                     report.ingest_transitions_per_sec
+                );
+                println!(
+                    "  plaintext, tokens      {:.0} transitions/s",
+                    report.ingest_plaintext_transitions_per_sec
                 );
             }
         }

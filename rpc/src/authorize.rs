@@ -117,8 +117,10 @@ impl<S> Authorize<S> {
                 entry.name, entry.role
             )));
         }
-        if needed != Role::Read {
-            tracing::info!(method = path, caller = %entry.name, role = %entry.role, "call");
+        if needed == Role::Control {
+            tracing::info!(method = path, caller = %entry.name, "control call");
+        } else {
+            tracing::debug!(method = path, caller = %entry.name, "call");
         }
         Ok(Some(Caller {
             name: entry.name.clone(),

@@ -171,7 +171,7 @@ impl ClientSecurity {
             Err(status)
                 if matches!(
                     status.code(),
-                    Code::Unknown | Code::Unavailable | Code::Internal
+                    Code::Unknown | Code::Unavailable | Code::Internal | Code::Cancelled
                 ) =>
             {
                 Err(self.hung_up(url.trim_end_matches('/'), &status))

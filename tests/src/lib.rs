@@ -247,6 +247,31 @@ pub fn start_service(bin: &str, args: &[&str], log: Option<&Path>) -> (Child, St
     (child, addr)
 }
 
+/// A child process killed if dropped before it is stopped, so that a
+/// failing test leaves nothing running.
+pub struct Running(Option<Child>);
+
+impl Running {
+    /// Guards `child`.
+    pub fn new(child: Child) -> Self {
+        Self(Some(child))
+    }
+
+    /// SIGTERM, then the exit status and what is left of standard output.
+    pub fn stop(mut self) -> (ExitStatus, String) {
+        stop(self.0.take().expect("not stopped yet"))
+    }
+}
+
+impl Drop for Running {
+    fn drop(&mut self) {
+        if let Some(mut child) = self.0.take() {
+            let _ = child.kill();
+            let _ = child.wait();
+        }
+    }
+}
+
 /// Sends signal `name` (`TERM`, `INT`, ...) to `child`.
 pub fn signal(child: &Child, name: &str) {
     let sent = Command::new("kill")

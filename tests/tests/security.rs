@@ -16,7 +16,7 @@ use tweezer_proto::pb::learner_client::LearnerClient;
 use tweezer_rpc::Role;
 use tweezer_rpc::access::{Access, RULES, access};
 use tweezer_system_tests::{
-    TINY_ENV, credentials, run, start_service, stderr_of_failure, stdout_of, stop, write,
+    Running, TINY_ENV, credentials, run, start_service, stderr_of_failure, stdout_of, write,
 };
 
 /// Sends the token of the file it was made from, or none.
@@ -228,11 +228,11 @@ fn learner_config(dir: &Path) -> String {
     )
 }
 
-fn start_learner(dir: &Path, security: &str, run: &str) -> (std::process::Child, String) {
+fn start_learner(dir: &Path, security: &str, run: &str) -> (Running, String) {
     let config = learner_config(dir);
     let run_dir = dir.join(run);
     let log = dir.join(format!("{run}.log"));
-    start_service(
+    let (child, addr) = start_service(
         "learner",
         &[
             "serve",
@@ -244,7 +244,8 @@ fn start_learner(dir: &Path, security: &str, run: &str) -> (std::process::Child,
             run_dir.to_str().unwrap(),
         ],
         Some(&log),
-    )
+    );
+    (Running::new(child), addr)
 }
 
 fn secrets() -> Vec<String> {
@@ -267,7 +268,7 @@ async fn every_learner_rpc_needs_its_role_and_tokens_stay_out_of_the_logs() {
     assert_eq!(checked, 8 * CALLERS.len());
     assert!(healthy(channel(&addr, "none").await, "tweezer.v1.Learner").await);
     assert!(healthy(channel(&addr, "none").await, "").await);
-    let (status, _) = stop(learner);
+    let (status, _) = learner.stop();
     assert!(status.success());
     let log = std::fs::read_to_string(dir.path().join("run.log")).unwrap();
     assert!(log.contains("call refused"), "{log}");
@@ -285,7 +286,7 @@ async fn every_hardware_agent_rpc_needs_its_role() {
     let dir = tempfile::tempdir().unwrap();
     let log = dir.path().join("agent.log");
     let security = credentials().file("server");
-    let (mut agent, addr) = start_service(
+    let (agent, addr) = start_service(
         "hardware-agent",
         &[
             "serve",
@@ -300,11 +301,11 @@ async fn every_hardware_agent_rpc_needs_its_role() {
         ],
         Some(&log),
     );
+    let agent = Running::new(agent);
     let checked = check_matrix(&addr, "tweezer.v1.HardwareAgent").await;
     assert_eq!(checked, 9 * CALLERS.len());
     assert!(healthy(channel(&addr, "none").await, "tweezer.v1.HardwareAgent").await);
-    let _ = agent.kill();
-    let _ = agent.wait();
+    drop(agent);
     let log = std::fs::read_to_string(&log).unwrap();
     for secret in secrets() {
         assert!(!log.contains(&secret), "a token reached the log");
@@ -349,7 +350,7 @@ async fn mutual_tls_refuses_clients_without_a_certificate() {
     );
     let err = stderr_of_failure(&cli);
     assert!(err.contains("client certificate"), "{err}");
-    assert!(stop(learner).0.success());
+    assert!(learner.stop().0.success());
 }
 
 #[test]
@@ -409,8 +410,8 @@ fn plaintext_only_as_the_file_says_and_the_cli_names_what_is_wrong() {
         .unwrap();
     let err = stderr_of_failure(&cli);
     assert!(err.contains("no security file"), "{err}");
-    assert!(stop(tls_learner).0.success());
-    assert!(stop(plain_learner).0.success());
+    assert!(tls_learner.stop().0.success());
+    assert!(plain_learner.stop().0.success());
 }
 
 #[test]
