@@ -132,7 +132,22 @@ impl Credentials {
 pub fn credentials() -> &'static Credentials {
     static CREDENTIALS: OnceLock<Credentials> = OnceLock::new();
     CREDENTIALS.get_or_init(|| {
-        let dir = std::env::temp_dir().join(format!("tweezer-test-credentials-{}", std::process::id()));
+        // Beside the binaries (so `cargo clean` takes them), one directory
+        // per test process; those of processes an hour gone are removed.
+        let target = binary("tweezer").parent().expect("a target directory");
+        let parent = target.join("test-credentials");
+        if let Ok(entries) = std::fs::read_dir(&parent) {
+            for entry in entries.flatten() {
+                let old = entry
+                    .metadata()
+                    .and_then(|m| m.modified())
+                    .is_ok_and(|t| t.elapsed().is_ok_and(|age| age > Duration::from_secs(3600)));
+                if old {
+                    let _ = std::fs::remove_dir_all(entry.path());
+                }
+            }
+        }
+        let dir = parent.join(std::process::id().to_string());
         let _ = std::fs::remove_dir_all(&dir);
         std::fs::create_dir_all(&dir).expect("a credentials directory");
         let d = dir.to_str().expect("a UTF-8 path");
