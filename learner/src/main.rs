@@ -9,7 +9,7 @@ use std::path::{Path, PathBuf};
 use tweezer_gym::{Seeds, init_logging};
 use tweezer_learner::config::LearnerFile;
 use tweezer_learner::report::{self, Report, ReportOptions};
-use tweezer_learner::serve::{CONFIG, serve};
+use tweezer_learner::serve::{CONFIG, Start, serve};
 use tweezer_learner::train::{self, TrainFile, TrainOptions, TrainOutcome};
 
 /// Tweezer RL learner: FIFO replay, TD3 in Burn, versioned policy snapshots
@@ -46,6 +46,11 @@ enum Command {
         /// Write the run here instead of `learner.run_dir`.
         #[arg(long, value_name = "DIR", conflicts_with = "resume")]
         run_dir: Option<PathBuf>,
+        /// Continue the run directory's run from its newest valid
+        /// checkpoint if it has checkpoints, start it otherwise (for
+        /// restarts by systemd, Slurm or Kubernetes).
+        #[arg(long, conflicts_with = "resume")]
+        auto_resume: bool,
         /// The security file: certificate, key, accepted tokens (see the
         /// README's Security section).
         #[arg(long, env = tweezer_rpc::SECURITY_ENV, value_name = "FILE")]
@@ -142,6 +147,7 @@ fn main() -> anyhow::Result<()> {
             listen,
             metrics_listen,
             run_dir,
+            auto_resume,
             security,
         } => {
             let path = match (&cli.config, &resume) {
@@ -160,7 +166,12 @@ fn main() -> anyhow::Result<()> {
                 file.learner.metrics_listen = metrics_listen;
             }
             let security = tweezer_rpc::Security::load(security.as_deref())?;
-            serve(file, resume.is_some(), &security)?;
+            let start = match (&resume, auto_resume) {
+                (Some(_), _) => Start::Resume,
+                (None, true) => Start::Auto,
+                (None, false) => Start::Fresh,
+            };
+            serve(file, start, &security)?;
         }
         Command::Train {
             preset,

@@ -35,17 +35,33 @@ const SHUTDOWN_GRACE: std::time::Duration = std::time::Duration::from_secs(3);
 /// The effective config, written when a run starts.
 pub const CONFIG: &str = "config.toml";
 
-/// Runs the learner until a signal stops it or training fails. With
-/// `resume`, continues the run in `file.learner.run_dir` from its newest
-/// valid checkpoint. `security` says how it listens: checked before
+/// How `serve` treats the run directory `learner.run_dir`.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Start {
+    /// A new run: refused if the directory holds checkpoints.
+    Fresh,
+    /// Continue from the newest valid checkpoint: refused if there is none.
+    Resume,
+    /// Continue if the directory holds checkpoints, start a new run
+    /// otherwise: for restarts by systemd, Slurm or Kubernetes.
+    Auto,
+}
+
+/// Runs the learner until a signal stops it or training fails, starting
+/// as `start` says. `security` says how it listens: checked before
 /// anything starts.
-pub fn serve(file: LearnerFile, resume: bool, security: &Security) -> anyhow::Result<()> {
+pub fn serve(file: LearnerFile, start: Start, security: &Security) -> anyhow::Result<()> {
     let listener_security = ServerSecurity::load(security)?;
     let config = &file.learner;
     let run_dir = &config.run_dir;
     std::fs::create_dir_all(run_dir)
         .with_context(|| format!("cannot create run directory {}", run_dir.display()))?;
     let checkpoints = Checkpoints::open(&run_dir.join(CHECKPOINTS), config.checkpoints.keep)?;
+    let resume = match start {
+        Start::Fresh => false,
+        Start::Resume => true,
+        Start::Auto => !checkpoints.list()?.is_empty(),
+    };
     let resumed = if resume {
         Some(newest_checkpoint(&checkpoints, run_dir)?)
     } else {

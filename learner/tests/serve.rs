@@ -149,7 +149,6 @@ impl Drop for Learner {
     }
 }
 
-/// A temporary directory with the tiny config file and a run directory.
 /// The learner's certificate and tokens, made once for this test binary.
 fn credentials() -> &'static Credentials {
     static DIR: OnceLock<(tempfile::TempDir, Credentials)> = OnceLock::new();
@@ -161,6 +160,7 @@ fn credentials() -> &'static Credentials {
     credentials
 }
 
+/// A temporary directory with the tiny config file and a run directory.
 fn run_dir() -> (tempfile::TempDir, PathBuf, PathBuf) {
     let dir = tempfile::tempdir().unwrap();
     let config = dir.path().join("learner.toml");
@@ -367,6 +367,38 @@ async fn learns_to_point_at_the_target_over_grpc() {
     }
     assert!(run.join("snapshots/best.safetensors").exists());
     assert!(run.join("config.toml").exists());
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn auto_resume_starts_a_run_then_continues_it() {
+    let (_dir, run, config) = run_dir();
+    let args = [
+        "--config",
+        config.to_str().unwrap(),
+        "--run-dir",
+        run.to_str().unwrap(),
+        "--auto-resume",
+    ];
+    let learner = Learner::start(&args);
+    let first = status(&learner).await;
+    let (exit, log) = learner.stop();
+    assert!(exit.success(), "{log}");
+    assert!(!log.contains("resuming"), "{log}");
+    assert_eq!(checkpoints(&run).len(), 1);
+
+    // As systemd, Slurm or Kubernetes would restart it: the same command.
+    let learner = Learner::start(&args);
+    let again = status(&learner).await;
+    assert!(again.latest_snapshot >= first.latest_snapshot);
+    let (exit, log) = learner.stop();
+    assert!(exit.success(), "{log}");
+    assert!(log.contains("resuming"), "{log}");
+    assert!(log.contains("checkpoint written"), "{log}");
+    assert_eq!(
+        checkpoints(&run).len(),
+        1,
+        "the same state, the same checkpoint"
+    );
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
