@@ -26,6 +26,18 @@ pub async fn channel(
     })
 }
 
+/// Prints the health of `service` at `address`; an error unless SERVING.
+pub async fn health(security: Option<&Path>, address: &str, service: &str) -> anyhow::Result<()> {
+    let client = ClientSecurity::anonymous(&Security::load(security)?)?;
+    let status = client.health(address, service, TIMEOUT).await?;
+    println!("{status}");
+    if status == "SERVING" {
+        Ok(())
+    } else {
+        Err(anyhow!("{address} is {status}"))
+    }
+}
+
 /// A failed call as an error that names the call and explains the code.
 pub fn call_error(what: &str, status: tonic::Status) -> anyhow::Error {
     use tonic::Code;

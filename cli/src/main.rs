@@ -48,6 +48,18 @@ enum Group {
         #[command(subcommand)]
         command: AgentCommand,
     },
+    /// Check a service's health (`grpc.health.v1`, no token needed):
+    /// prints its status and exits 0 only when it is SERVING. For
+    /// Kubernetes exec probes and scripts.
+    Health {
+        /// The service's gRPC address.
+        #[arg(long)]
+        address: String,
+        /// The service to ask about (`tweezer.v1.Learner`,
+        /// `tweezer.v1.HardwareAgent`); the whole server by default.
+        #[arg(long, default_value = "")]
+        service: String,
+    },
     /// Certificates: the deployment's CA, and one for each process.
     Cert {
         #[command(subcommand)]
@@ -225,6 +237,9 @@ fn main() -> anyhow::Result<()> {
             }
             Group::Agent { agent, command } => {
                 agent::run(security, &agent, command, cli.json).await
+            }
+            Group::Health { address, service } => {
+                connect::health(security, &address, &service).await
             }
             Group::Cert { command } => credentials::cert(command),
             Group::Token { command } => credentials::token(command),

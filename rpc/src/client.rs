@@ -16,9 +16,10 @@ use tonic_health::pb::health_client::HealthClient;
 /// A channel that sends the client's token with every call.
 pub type AuthChannel = InterceptedService<Channel, Bearer>;
 
-/// Adds `authorization: Bearer <token>` to each call. `Debug` hides it.
+/// Adds `authorization: Bearer <token>` to each call (nothing for an
+/// anonymous client). `Debug` hides it.
 #[derive(Clone)]
-pub struct Bearer(MetadataValue<Ascii>);
+pub struct Bearer(Option<MetadataValue<Ascii>>);
 
 impl std::fmt::Debug for Bearer {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
@@ -31,9 +32,11 @@ impl Interceptor for Bearer {
         &mut self,
         mut request: tonic::Request<()>,
     ) -> Result<tonic::Request<()>, tonic::Status> {
-        request
-            .metadata_mut()
-            .insert("authorization", self.0.clone());
+        if let Some(value) = &self.0 {
+            request
+                .metadata_mut()
+                .insert("authorization", value.clone());
+        }
         Ok(request)
     }
 }
@@ -78,6 +81,16 @@ impl ClientSecurity {
         let token = security.token()?;
         let value = MetadataValue::try_from(format!("Bearer {}", token.secret()))
             .expect("a parsed token is printable ASCII");
+        Self::with_bearer(security, Bearer(Some(value)))
+    }
+
+    /// The client settings of `security` without a token: for health
+    /// checks (open to all), as a probe makes them.
+    pub fn anonymous(security: &Security) -> Result<Self, SecurityError> {
+        Self::with_bearer(security, Bearer(None))
+    }
+
+    fn with_bearer(security: &Security, bearer: Bearer) -> Result<Self, SecurityError> {
         let pem = security.client_pem()?;
         let certificate = pem.as_ref().is_some_and(|p| p.identity.is_some());
         let tls = pem.map(|pem| {
@@ -98,7 +111,7 @@ impl ClientSecurity {
         Ok(Self {
             tls,
             certificate,
-            bearer: Bearer(value),
+            bearer,
             source: security.source.clone(),
         })
     }
@@ -153,30 +166,52 @@ impl ClientSecurity {
         address: &str,
         timeout: Duration,
     ) -> Result<AuthChannel, ConnectError> {
+        let (channel, _) = self.checked(address, timeout).await?;
+        Ok(self.authed(channel))
+    }
+
+    /// The health of `service` (`""`: the whole server) at `address`, as
+    /// `grpc.health.v1` reports it: `SERVING`, `NOT_SERVING`, or
+    /// `SERVICE_UNKNOWN` for a service the server does not have.
+    pub async fn health(
+        &self,
+        address: &str,
+        service: &str,
+        timeout: Duration,
+    ) -> Result<String, ConnectError> {
+        let (channel, url) = self.checked(address, timeout).await?;
+        match health(channel, service).await {
+            Ok(reply) => Ok(reply.status().as_str_name().to_string()),
+            Err(status) if status.code() == Code::NotFound => Ok("SERVICE_UNKNOWN".into()),
+            Err(status) => Err(self.hung_up(&url, &status)),
+        }
+    }
+
+    /// A channel to `address` that has answered a health check, and its URL.
+    async fn checked(
+        &self,
+        address: &str,
+        timeout: Duration,
+    ) -> Result<(Channel, String), ConnectError> {
         let endpoint = self
             .endpoint(address)?
             .connect_timeout(timeout)
             .tcp_nodelay(true);
-        let url = endpoint.uri().to_string();
+        let url = endpoint.uri().to_string().trim_end_matches('/').to_string();
         let channel = endpoint
             .connect()
             .await
-            .map_err(|e| self.unreachable(url.trim_end_matches('/'), &e))?;
-        let probe = HealthClient::new(channel.clone())
-            .check(HealthCheckRequest {
-                service: String::new(),
-            })
-            .await;
-        match probe {
+            .map_err(|e| self.unreachable(&url, &e))?;
+        match health(channel.clone(), "").await {
             Err(status)
                 if matches!(
                     status.code(),
                     Code::Unknown | Code::Unavailable | Code::Internal | Code::Cancelled
                 ) =>
             {
-                Err(self.hung_up(url.trim_end_matches('/'), &status))
+                Err(self.hung_up(&url, &status))
             }
-            _ => Ok(self.authed(channel)),
+            _ => Ok((channel, url)),
         }
     }
 
@@ -242,4 +277,17 @@ pub fn hint(cause: &str, plaintext: bool) -> Option<&'static str> {
     } else {
         None
     }
+}
+
+/// One `grpc.health.v1` check of `service` over `channel`.
+async fn health(
+    channel: Channel,
+    service: &str,
+) -> Result<tonic_health::pb::HealthCheckResponse, tonic::Status> {
+    HealthClient::new(channel)
+        .check(HealthCheckRequest {
+            service: service.into(),
+        })
+        .await
+        .map(tonic::Response::into_inner)
 }

@@ -113,7 +113,8 @@ impl Credentials {
     /// read token for fetching snapshots), `server-mtls` (and requiring
     /// client certificates), `read`, `actor`, `control`, `stranger`
     /// (clients with that token), `control-cert` (and the client
-    /// certificate), `server-plain` and `read-plain` (plaintext).
+    /// certificate), `server-plain` and `read-plain` (plaintext), `probe`
+    /// (the CA only, no token).
     pub fn file(&self, name: &str) -> String {
         let path = self.dir.join(format!("{name}.toml"));
         assert!(path.is_file(), "no security file {}", path.display());
@@ -177,6 +178,7 @@ pub fn credentials() -> &'static Credentials {
             ("server-mtls", format!("{server}require_client_cert = true\n")),
             ("server-plain", "plaintext = true\ntokens = \"tokens\"\n".into()),
             ("read-plain", "plaintext = true\ntoken_file = \"read.token\"\n".into()),
+            ("probe", "ca = \"ca.crt\"\n".into()),
             (
                 "control-cert",
                 "ca = \"ca.crt\"\ntoken_file = \"control.token\"\ncert = \"client.crt\"\nkey = \"client.key\"\n".into(),

@@ -402,6 +402,35 @@ fn plaintext_only_as_the_file_says_and_the_cli_names_what_is_wrong() {
     let out = stdout_of(&tweezer("control", &tls_addr, "pause"));
     assert!(out.contains("\"paused\":true"), "{out}");
 
+    // A probe needs only the CA: health is open to all.
+    let probe = credentials().file("probe");
+    let healthy = |service: &str| {
+        run(
+            "tweezer",
+            &[
+                "--security",
+                &probe,
+                "health",
+                "--address",
+                &tls_addr,
+                "--service",
+                service,
+            ],
+        )
+    };
+    assert_eq!(stdout_of(&healthy("tweezer.v1.Learner")).trim(), "SERVING");
+    let unknown = healthy("tweezer.v1.Nothing");
+    assert!(!unknown.status.success());
+    assert_eq!(
+        String::from_utf8_lossy(&unknown.stdout).trim(),
+        "SERVICE_UNKNOWN"
+    );
+    let err = stderr_of_failure(&tweezer("probe", &tls_addr, "status"));
+    assert!(
+        err.contains("token_file"),
+        "a probe cannot read the status: {err}"
+    );
+
     // No security file at all.
     let cli = std::process::Command::new(tweezer_system_tests::binary("tweezer"))
         .args(["learner", "--learner", &tls_addr, "status"])
