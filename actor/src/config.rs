@@ -2,7 +2,7 @@
 
 use serde::{Deserialize, Serialize};
 use std::path::Path;
-use tweezer_gym::{ConfigError, EnvConfig, read_toml};
+use tweezer_gym::{ConfigError, EnvConfig, SplitMix64, read_toml};
 
 /// The whole file.
 #[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
@@ -50,6 +50,10 @@ pub struct ActorConfig {
     pub max_unacked: usize,
     /// Seed of the episodes and of the exploration noise.
     pub seed: u64,
+    /// Mix the actor's id into `seed`: replicas started from one config
+    /// (a Kubernetes Deployment, whose ids are pod names) then draw
+    /// different episodes.
+    pub seed_from_id: bool,
     /// Standard deviation of the Gaussian action noise (SPEC §4: 0.1).
     pub noise: f64,
     /// Address of the Prometheus endpoint (`GET /metrics`; the security
@@ -70,6 +74,7 @@ impl Default for ActorConfig {
             batch_steps: 256,
             max_unacked: 4,
             seed: 0,
+            seed_from_id: false,
             noise: 0.1,
             metrics_listen: None,
             reconnect_initial_ms: 100,
@@ -79,6 +84,18 @@ impl Default for ActorConfig {
 }
 
 impl ActorConfig {
+    /// The seed the actor runs with: `seed`, or with `seed_from_id` the
+    /// seed mixed with a hash of `id` (FNV-1a, stable across builds).
+    pub fn effective_seed(&self) -> u64 {
+        if !self.seed_from_id {
+            return self.seed;
+        }
+        let hash = self.id.bytes().fold(0xcbf2_9ce4_8422_2325_u64, |h, b| {
+            (h ^ u64::from(b)).wrapping_mul(0x0000_0100_0000_01b3)
+        });
+        SplitMix64::derived(self.seed, hash).next_u64()
+    }
+
     /// Checks every field; the error names the first one out of range.
     pub fn validate(&self) -> Result<(), ConfigError> {
         let invalid = |field: &str, reason: String| {
@@ -131,5 +148,27 @@ impl ActorConfig {
             );
         }
         Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn ids_mixed_into_the_seed_give_replicas_their_own_episodes() {
+        let pod = |id: &str| ActorConfig {
+            id: id.into(),
+            seed_from_id: true,
+            ..ActorConfig::default()
+        };
+        let a = pod("tweezer-actor-7d9f-abcde").effective_seed();
+        assert_eq!(a, pod("tweezer-actor-7d9f-abcde").effective_seed());
+        assert_ne!(a, pod("tweezer-actor-7d9f-fghij").effective_seed());
+        let plain = ActorConfig {
+            seed: 42,
+            ..ActorConfig::default()
+        };
+        assert_eq!(plain.effective_seed(), 42);
     }
 }

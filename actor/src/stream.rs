@@ -130,6 +130,8 @@ pub fn run(
     stop: Arc<AtomicBool>,
 ) -> anyhow::Result<RunReport> {
     let config = file.actor.clone();
+    let seed = config.effective_seed();
+    tracing::info!(id = %config.id, seed, "actor starting");
     let runtime = tokio::runtime::Builder::new_multi_thread()
         .worker_threads(1)
         .enable_all()
@@ -144,10 +146,10 @@ pub fn run(
         signalled.store(true, Ordering::Relaxed);
     });
     let mut actor = Actor {
-        envs: VecEnv::new(&file.env, config.envs, config.seed)?,
+        envs: VecEnv::new(&file.env, config.envs, seed)?,
         actions: vec![Action::ZERO; config.envs],
-        uniform: UniformRandom::new(config.seed),
-        noise: SplitMix64::derived(config.seed, 0x0015e),
+        uniform: UniformRandom::new(seed),
+        noise: SplitMix64::derived(seed, 0x0015e),
         policy: None,
         explore_uniformly: true,
         newest_snapshot: 0,
@@ -170,7 +172,7 @@ pub fn run(
         initial: Duration::from_millis(config.reconnect_initial_ms),
         max: Duration::from_millis(config.reconnect_max_ms),
         next: Duration::from_millis(config.reconnect_initial_ms),
-        rng: SplitMix64::derived(config.seed, 0xbac0ff),
+        rng: SplitMix64::derived(seed, 0xbac0ff),
     };
     let mut link: Option<Link> = None;
     let mut connections = 0u64;
