@@ -1,0 +1,117 @@
+//! The Kubernetes manifests: every overlay renders with kustomize
+//! (`kubectl kustomize`, from PyPI's kubectl wheel) and passes strict
+//! validation against the Kubernetes 1.37 schemas (`kubernetes-validate`,
+//! offline); the configuration files it ships are accepted by the
+//! processes themselves.
+
+use std::path::Path;
+use std::process::Command;
+use tweezer_system_tests::{run, stderr_of_failure, stdout_of};
+
+fn check(program: &Path, args: &[&str]) -> String {
+    let output = Command::new(program)
+        .args(args)
+        .output()
+        .unwrap_or_else(|e| panic!("cannot run {}: {e}", program.display()));
+    assert!(
+        output.status.success(),
+        "{} {args:?} failed:\n{}{}",
+        program.display(),
+        String::from_utf8_lossy(&output.stdout),
+        String::from_utf8_lossy(&output.stderr)
+    );
+    String::from_utf8_lossy(&output.stdout).into_owned()
+}
+
+#[test]
+fn every_overlay_renders_validates_and_configures_the_processes() {
+    let dir = tempfile::tempdir().unwrap();
+    let here = Path::new(env!("CARGO_MANIFEST_DIR"));
+    let venv = dir.path().join("venv");
+    check(
+        Path::new("python3"),
+        &["-m", "venv", venv.to_str().unwrap()],
+    );
+    let requirements = here.join("python/requirements-k8s.txt");
+    check(
+        &venv.join("bin/python"),
+        &[
+            "-m",
+            "pip",
+            "install",
+            "--quiet",
+            "--disable-pip-version-check",
+            "-r",
+            requirements.to_str().unwrap(),
+        ],
+    );
+    let overlays = here.join("../deploy/k8s/overlays");
+    let mut names: Vec<String> = std::fs::read_dir(&overlays)
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+        .collect();
+    names.sort();
+    assert_eq!(names, ["cpu", "gpu"]);
+    for name in &names {
+        let rendered = check(
+            &venv.join("bin/kubectl"),
+            &["kustomize", overlays.join(name).to_str().unwrap()],
+        );
+        let file = dir.path().join(format!("{name}.yaml"));
+        std::fs::write(&file, &rendered).unwrap();
+        let validated = check(
+            &venv.join("bin/kubernetes-validate"),
+            &["--strict", "-k", "1.37.0", file.to_str().unwrap()],
+        );
+        for kind in ["configmap", "service", "statefulset", "deployment"] {
+            assert!(
+                validated.contains(&format!("passed for resource {kind}/")),
+                "{name}: no {kind} passed:\n{validated}"
+            );
+        }
+        assert!(rendered.contains("- --auto-resume"), "{name}");
+        assert!(rendered.contains("- $(POD_NAME)"), "{name}");
+
+        // The shipped config files are the processes' own to judge.
+        let files = dir.path().join(format!("{name}-config"));
+        std::fs::create_dir(&files).unwrap();
+        let listed = check(
+            &venv.join("bin/python"),
+            &[
+                here.join("python/configmap_files.py").to_str().unwrap(),
+                file.to_str().unwrap(),
+                files.to_str().unwrap(),
+            ],
+        );
+        assert_eq!(listed.lines().count(), 5, "{name}: {listed}");
+        let config = |file: &str| files.join(file).to_str().unwrap().to_string();
+        if name == "gpu" {
+            // This build has no CUDA: the GPU config is refused for that
+            // alone, and otherwise accepted.
+            let refused = run("learner", &["--config", &config("learner.toml"), "config"]);
+            let err = stderr_of_failure(&refused);
+            assert!(err.contains("--features cuda"), "{err}");
+            let text = std::fs::read_to_string(files.join("learner.toml")).unwrap();
+            std::fs::write(
+                files.join("learner.toml"),
+                text.replace("\"cuda\"", "\"flex\""),
+            )
+            .unwrap();
+            assert!(rendered.contains("nvidia.com/gpu: 1"), "{rendered}");
+        }
+        let learner = stdout_of(&run(
+            "learner",
+            &["--config", &config("learner.toml"), "config"],
+        ));
+        assert!(learner.contains("listen = \"0.0.0.0:50051\""), "{learner}");
+        let actor = stdout_of(&run(
+            "actor",
+            &["--config", &config("actor.toml"), "config"],
+        ));
+        assert!(actor.contains("seed_from_id = true"), "{actor}");
+        for security in ["learner-security.toml", "actor-security.toml", "probe.toml"] {
+            tweezer_rpc::Security::load(Some(&files.join(security)))
+                .unwrap_or_else(|e| panic!("{name}: {e}"));
+        }
+    }
+}
