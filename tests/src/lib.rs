@@ -341,3 +341,46 @@ pub fn write(path: &Path, text: &str) -> String {
     std::fs::write(path, text).unwrap_or_else(|e| panic!("cannot write {}: {e}", path.display()));
     path.to_str().expect("a UTF-8 path").to_string()
 }
+
+/// Runs `program` with `args`; its standard output, or a panic with what
+/// it printed.
+pub fn check(program: &Path, args: &[&str]) -> String {
+    let output = Command::new(program)
+        .args(args)
+        .output()
+        .unwrap_or_else(|e| panic!("cannot run {}: {e}", program.display()));
+    assert!(
+        output.status.success(),
+        "{} {args:?} failed:\n{}{}",
+        program.display(),
+        String::from_utf8_lossy(&output.stdout),
+        String::from_utf8_lossy(&output.stderr)
+    );
+    String::from_utf8_lossy(&output.stdout).into_owned()
+}
+
+/// A fresh Python virtual environment in `dir` with the packages pinned in
+/// `tests/python/<requirements>` installed from PyPI; its `bin` directory.
+pub fn python_venv(dir: &Path, requirements: &str) -> PathBuf {
+    let venv = dir.join("venv");
+    check(
+        Path::new("python3"),
+        &["-m", "venv", venv.to_str().expect("a UTF-8 path")],
+    );
+    let requirements = Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("python")
+        .join(requirements);
+    check(
+        &venv.join("bin/python"),
+        &[
+            "-m",
+            "pip",
+            "install",
+            "--quiet",
+            "--disable-pip-version-check",
+            "-r",
+            requirements.to_str().expect("a UTF-8 path"),
+        ],
+    );
+    venv.join("bin")
+}

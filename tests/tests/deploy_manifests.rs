@@ -5,46 +5,13 @@
 //! processes themselves.
 
 use std::path::Path;
-use std::process::Command;
-use tweezer_system_tests::{run, stderr_of_failure, stdout_of};
-
-fn check(program: &Path, args: &[&str]) -> String {
-    let output = Command::new(program)
-        .args(args)
-        .output()
-        .unwrap_or_else(|e| panic!("cannot run {}: {e}", program.display()));
-    assert!(
-        output.status.success(),
-        "{} {args:?} failed:\n{}{}",
-        program.display(),
-        String::from_utf8_lossy(&output.stdout),
-        String::from_utf8_lossy(&output.stderr)
-    );
-    String::from_utf8_lossy(&output.stdout).into_owned()
-}
+use tweezer_system_tests::{check, python_venv, run, stderr_of_failure, stdout_of};
 
 #[test]
 fn every_overlay_renders_validates_and_configures_the_processes() {
     let dir = tempfile::tempdir().unwrap();
     let here = Path::new(env!("CARGO_MANIFEST_DIR"));
-    let venv = dir.path().join("venv");
-    check(
-        Path::new("python3"),
-        &["-m", "venv", venv.to_str().unwrap()],
-    );
-    let requirements = here.join("python/requirements-k8s.txt");
-    check(
-        &venv.join("bin/python"),
-        &[
-            "-m",
-            "pip",
-            "install",
-            "--quiet",
-            "--disable-pip-version-check",
-            "-r",
-            requirements.to_str().unwrap(),
-        ],
-    );
+    let bin = python_venv(dir.path(), "requirements-k8s.txt");
     let overlays = here.join("../deploy/k8s/overlays");
     let mut names: Vec<String> = std::fs::read_dir(&overlays)
         .unwrap()
@@ -54,13 +21,13 @@ fn every_overlay_renders_validates_and_configures_the_processes() {
     assert_eq!(names, ["cpu", "gpu"]);
     for name in &names {
         let rendered = check(
-            &venv.join("bin/kubectl"),
+            &bin.join("kubectl"),
             &["kustomize", overlays.join(name).to_str().unwrap()],
         );
         let file = dir.path().join(format!("{name}.yaml"));
         std::fs::write(&file, &rendered).unwrap();
         let validated = check(
-            &venv.join("bin/kubernetes-validate"),
+            &bin.join("kubernetes-validate"),
             &["--strict", "-k", "1.37.0", file.to_str().unwrap()],
         );
         for kind in ["configmap", "service", "statefulset", "deployment"] {
@@ -76,7 +43,7 @@ fn every_overlay_renders_validates_and_configures_the_processes() {
         let files = dir.path().join(format!("{name}-config"));
         std::fs::create_dir(&files).unwrap();
         let listed = check(
-            &venv.join("bin/python"),
+            &bin.join("python"),
             &[
                 here.join("python/configmap_files.py").to_str().unwrap(),
                 file.to_str().unwrap(),

@@ -9,48 +9,16 @@ use std::path::Path;
 use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 use tweezer_system_tests::{
-    TINY_ENV, binary, credentials, free_port, start_agent, start_learner, stop, write,
+    TINY_ENV, binary, check, credentials, free_port, python_venv, start_agent, start_learner, stop,
+    write,
 };
-
-/// Runs `program` with `args`; its standard output, or a panic with its
-/// standard error.
-fn check(program: &Path, args: &[&str]) -> String {
-    let output = Command::new(program)
-        .args(args)
-        .output()
-        .unwrap_or_else(|e| panic!("cannot run {}: {e}", program.display()));
-    assert!(
-        output.status.success(),
-        "{} {args:?} failed:\n{}",
-        program.display(),
-        String::from_utf8_lossy(&output.stderr)
-    );
-    String::from_utf8_lossy(&output.stdout).into_owned()
-}
 
 #[test]
 fn a_python_grpcio_client_reads_the_learner_over_tls_with_a_token() {
     let dir = tempfile::tempdir().unwrap();
     let here = Path::new(env!("CARGO_MANIFEST_DIR"));
-    let venv = dir.path().join("venv");
-    check(
-        Path::new("python3"),
-        &["-m", "venv", venv.to_str().unwrap()],
-    );
-    let python = venv.join("bin/python");
-    let requirements = here.join("python/requirements.txt");
-    check(
-        &python,
-        &[
-            "-m",
-            "pip",
-            "install",
-            "--quiet",
-            "--disable-pip-version-check",
-            "-r",
-            requirements.to_str().unwrap(),
-        ],
-    );
+    let bin = python_venv(dir.path(), "requirements.txt");
+    let python = bin.join("python");
     let stubs = dir.path().join("stubs");
     std::fs::create_dir_all(&stubs).unwrap();
     let proto = here.join("../proto");
