@@ -8,6 +8,16 @@ use std::path::Path;
 use tweezer_proto::pb::learner_client::LearnerClient;
 use tweezer_proto::pb::snapshot_request::Selector;
 use tweezer_proto::{DownloadError, download_snapshot, pb};
+use tweezer_rpc::AuthChannel;
+
+/// The learner's status.
+async fn status(client: &mut LearnerClient<AuthChannel>) -> anyhow::Result<pb::LearnerStatus> {
+    Ok(client
+        .get_status(pb::LearnerStatusRequest {})
+        .await
+        .map_err(|e| call_error("GetStatus", e))?
+        .into_inner())
+}
 
 /// Runs a learner command against the learner at `address`, connecting as
 /// the security file `security` says.
@@ -23,14 +33,7 @@ pub async fn run(
         LearnerCommand::Status { watch } => {
             crate::watch::repeat(watch, json, || {
                 let mut client = client.clone();
-                async move {
-                    let status = client
-                        .get_status(pb::LearnerStatusRequest {})
-                        .await
-                        .map_err(|e| call_error("GetStatus", e))?
-                        .into_inner();
-                    Ok(fields::learner(&status))
-                }
+                async move { Ok(fields::learner(&status(&mut client).await?)) }
             })
             .await
         }
@@ -62,11 +65,7 @@ pub async fn run(
             Ok(())
         }
         LearnerCommand::Actors => {
-            let status = client
-                .get_status(pb::LearnerStatusRequest {})
-                .await
-                .map_err(|e| call_error("GetStatus", e))?
-                .into_inner();
+            let status = status(&mut client).await?;
             if status.actors.is_empty() && !json {
                 println!("no actor has sent steps to this learner since it started");
             }

@@ -12,7 +12,7 @@ use tweezer_nets::{NetworkPolicy, SnapshotInfo, file_sha256};
 use tweezer_proto::pb::learner_client::LearnerClient;
 use tweezer_proto::pb::snapshot_request::Selector;
 use tweezer_proto::{download_snapshot, pb};
-use tweezer_rpc::{ClientSecurity, Security, hint};
+use tweezer_rpc::{ClientSecurity, Security};
 
 /// What kind of source.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
@@ -244,23 +244,11 @@ impl LoadedPolicy {
             .build()
             .map_err(|e| fail(e.to_string()))?;
         let (info, bytes) = runtime.block_on(async {
-            let client = ClientSecurity::load(security).map_err(|e| fail(e.to_string()))?;
-            let endpoint = client
-                .endpoint(address)
+            let channel = ClientSecurity::load(security)
                 .map_err(|e| fail(e.to_string()))?
-                .connect_timeout(timeout)
-                .timeout(timeout);
-            let channel = endpoint.connect().await.map_err(|e| {
-                let cause = std::error::Error::source(&e)
-                    .map_or_else(|| e.to_string(), ToString::to_string);
-                fail(format!(
-                    "{cause}{}",
-                    hint(&cause, client.plaintext())
-                        .map(|h| format!(" ({h})"))
-                        .unwrap_or_default()
-                ))
-            })?;
-            let channel = client.authed(channel);
+                .connect_bounded(address, timeout)
+                .await
+                .map_err(|e| fail(e.to_string()))?;
             let mut client = LearnerClient::new(channel).max_decoding_message_size(64 << 20);
             download_snapshot(&mut client, choice.selector())
                 .await

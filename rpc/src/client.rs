@@ -166,7 +166,18 @@ impl ClientSecurity {
         address: &str,
         timeout: Duration,
     ) -> Result<AuthChannel, ConnectError> {
-        let (channel, _) = self.checked(address, timeout).await?;
+        let (channel, _) = self.checked(address, timeout, None).await?;
+        Ok(self.authed(channel))
+    }
+
+    /// As [`Self::connect`], and each call on the channel must be answered
+    /// within `timeout` too.
+    pub async fn connect_bounded(
+        &self,
+        address: &str,
+        timeout: Duration,
+    ) -> Result<AuthChannel, ConnectError> {
+        let (channel, _) = self.checked(address, timeout, Some(timeout)).await?;
         Ok(self.authed(channel))
     }
 
@@ -179,7 +190,7 @@ impl ClientSecurity {
         service: &str,
         timeout: Duration,
     ) -> Result<String, ConnectError> {
-        let (channel, url) = self.checked(address, timeout).await?;
+        let (channel, url) = self.checked(address, timeout, None).await?;
         match health(channel, service).await {
             Ok(reply) => Ok(reply.status().as_str_name().to_string()),
             Err(status) if status.code() == Code::NotFound => Ok("SERVICE_UNKNOWN".into()),
@@ -187,16 +198,21 @@ impl ClientSecurity {
         }
     }
 
-    /// A channel to `address` that has answered a health check, and its URL.
+    /// A channel to `address` that has answered a health check (calls
+    /// bounded by `call_timeout`, if given), and its URL.
     async fn checked(
         &self,
         address: &str,
         timeout: Duration,
+        call_timeout: Option<Duration>,
     ) -> Result<(Channel, String), ConnectError> {
-        let endpoint = self
+        let mut endpoint = self
             .endpoint(address)?
             .connect_timeout(timeout)
             .tcp_nodelay(true);
+        if let Some(call_timeout) = call_timeout {
+            endpoint = endpoint.timeout(call_timeout);
+        }
         let url = endpoint.uri().to_string().trim_end_matches('/').to_string();
         let channel = endpoint
             .connect()

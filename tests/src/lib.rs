@@ -209,9 +209,9 @@ pub fn start_learner(args: &[&str]) -> (Child, String) {
 
 /// Starts `hardware-agent serve --twin --greedy` on a free loopback port
 /// with the test deployment's server security file and `args` (`--rate`,
-/// `--records`, ...); returns it, once it listens, and the address it
-/// listens on.
-pub fn start_agent(args: &[&str]) -> (Child, String) {
+/// `--records`, ...), its standard error to `log` if given; returns it,
+/// once it listens, and the address it listens on.
+pub fn start_agent(args: &[&str], log: Option<&Path>) -> (Child, String) {
     let security = credentials().file("server");
     let mut all = vec![
         "serve",
@@ -223,7 +223,7 @@ pub fn start_agent(args: &[&str]) -> (Child, String) {
         &security,
     ];
     all.extend_from_slice(args);
-    start_service("hardware-agent", &all, None)
+    start_service("hardware-agent", &all, log)
 }
 
 /// A channel to the service at `addr` (`host:port`) as the security file

@@ -24,7 +24,10 @@ impl Drop for Daemon {
 }
 
 fn start(records: &std::path::Path) -> (Daemon, String) {
-    let (child, addr) = start_agent(&["--rate", "20", "--records", records.to_str().unwrap()]);
+    let (child, addr) = start_agent(
+        &["--rate", "20", "--records", records.to_str().unwrap()],
+        None,
+    );
     (Daemon(child), addr)
 }
 

@@ -125,8 +125,10 @@ fn the_cli_reads_the_learner_and_drives_the_agent() {
     assert!(stop(learner).0.success());
 
     let records = dir.path().join("records");
-    let (mut agent, agent_addr) =
-        start_agent(&["--rate", "20", "--records", records.to_str().unwrap()]);
+    let (mut agent, agent_addr) = start_agent(
+        &["--rate", "20", "--records", records.to_str().unwrap()],
+        None,
+    );
     let ctl = |args: &[&str]| {
         let mut all = vec!["--json", "agent", "--agent", agent_addr.as_str()];
         all.extend_from_slice(args);

@@ -109,7 +109,7 @@ fn a_python_grpcio_client_reads_the_learner_over_tls_with_a_token() {
         serde_json::from_str(out.trim()).unwrap()
     };
     let agent_metrics = format!("127.0.0.1:{}", free_port());
-    let (agent, _) = start_agent(&["--metrics-listen", &agent_metrics]);
+    let (agent, _) = start_agent(&["--metrics-listen", &agent_metrics], None);
     let agent_seen = scrape(&agent_metrics);
     assert_eq!(agent_seen["without_token"], 401, "{agent_seen}");
     let families = &agent_seen["families"];

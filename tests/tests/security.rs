@@ -6,38 +6,15 @@
 use std::path::Path;
 use std::time::Duration;
 use tonic::Code;
-use tonic::metadata::{Ascii, MetadataValue};
-use tonic::service::Interceptor;
-use tonic::service::interceptor::InterceptedService;
-use tonic::transport::Channel;
 use tweezer_proto::pb;
 use tweezer_proto::pb::hardware_agent_client::HardwareAgentClient;
 use tweezer_proto::pb::learner_client::LearnerClient;
-use tweezer_rpc::Role;
 use tweezer_rpc::access::{Access, RULES, access};
+use tweezer_rpc::{AuthChannel, ClientSecurity, Role, Security};
 use tweezer_system_tests::{
-    Running, TINY_ENV, credentials, run, start_service, stderr_of_failure, stdout_of, write,
+    Running, TINY_ENV, connect, credentials, run, start_agent, start_service, stderr_of_failure,
+    stdout_of, write,
 };
-
-/// Sends the token of the file it was made from, or none.
-#[derive(Clone)]
-struct Header(Option<MetadataValue<Ascii>>);
-
-impl Interceptor for Header {
-    fn call(
-        &mut self,
-        mut request: tonic::Request<()>,
-    ) -> Result<tonic::Request<()>, tonic::Status> {
-        if let Some(value) = &self.0 {
-            request
-                .metadata_mut()
-                .insert("authorization", value.clone());
-        }
-        Ok(request)
-    }
-}
-
-type Ch = InterceptedService<Channel, Header>;
 
 /// Who calls: no token, a token no service lists, or one of each role.
 const CALLERS: [(&str, Option<Role>); 5] = [
@@ -48,29 +25,23 @@ const CALLERS: [(&str, Option<Role>); 5] = [
     ("control", Some(Role::Control)),
 ];
 
-fn token(name: &str) -> Option<MetadataValue<Ascii>> {
-    if name == "none" {
-        return None;
+/// A channel as `caller` (a security file of the test deployment, or
+/// `none`: the CA only, no token).
+async fn channel(addr: &str, caller: &str) -> AuthChannel {
+    if caller != "none" {
+        return connect(addr, caller).await;
     }
-    let path = credentials().dir.join(format!("{name}.token"));
-    let secret = std::fs::read_to_string(path).unwrap();
-    Some(format!("Bearer {}", secret.trim()).parse().unwrap())
-}
-
-async fn channel(addr: &str, caller: &str) -> Ch {
-    let channel = credentials()
-        .client("read")
-        .endpoint(addr)
+    let probe = Security::load(Some(Path::new(&credentials().file("probe")))).unwrap();
+    ClientSecurity::anonymous(&probe)
         .unwrap()
-        .connect()
+        .connect(addr, Duration::from_secs(10))
         .await
-        .unwrap();
-    InterceptedService::new(channel, Header(token(caller)))
+        .unwrap()
 }
 
 /// Calls `method` with a request that changes as little as it can; the
 /// status, or OK.
-async fn call(channel: Ch, method: &str) -> Result<(), tonic::Status> {
+async fn call(channel: AuthChannel, method: &str) -> Result<(), tonic::Status> {
     let mut learner = LearnerClient::new(channel.clone());
     let mut agent = HardwareAgentClient::new(channel.clone());
     let name = method.rsplit('/').next().unwrap();
@@ -210,7 +181,7 @@ async fn check_matrix(addr: &str, service: &str) -> usize {
 }
 
 /// The health check, with no token.
-async fn healthy(channel: Ch, service: &str) -> bool {
+async fn healthy(channel: AuthChannel, service: &str) -> bool {
     use tonic_health::pb::health_check_response::ServingStatus;
     tonic_health::pb::health_client::HealthClient::new(channel)
         .check(tonic_health::pb::HealthCheckRequest {
@@ -285,22 +256,8 @@ async fn every_learner_rpc_needs_its_role_and_tokens_stay_out_of_the_logs() {
 async fn every_hardware_agent_rpc_needs_its_role() {
     let dir = tempfile::tempdir().unwrap();
     let log = dir.path().join("agent.log");
-    let security = credentials().file("server");
-    let (agent, addr) = start_service(
-        "hardware-agent",
-        &[
-            "serve",
-            "--twin",
-            "--greedy",
-            "--listen",
-            "127.0.0.1:0",
-            "--security",
-            &security,
-            "--records",
-            dir.path().join("records").to_str().unwrap(),
-        ],
-        Some(&log),
-    );
+    let records = dir.path().join("records");
+    let (agent, addr) = start_agent(&["--records", records.to_str().unwrap()], Some(&log));
     let agent = Running::new(agent);
     let checked = check_matrix(&addr, "tweezer.v1.HardwareAgent").await;
     assert_eq!(checked, 9 * CALLERS.len());
@@ -455,19 +412,20 @@ fn a_service_without_its_tokens_or_certificate_does_not_start() {
             credentials().dir.join("server.key")
         ),
     );
-    let refused = run(
-        "learner",
-        &[
+    // What `learner serve` says when refused with the security file `file`.
+    let refusal = |file: &str| {
+        let serve = [
             "serve",
             "--security",
-            &missing,
+            file,
             "--config",
             &config,
             "--run-dir",
             "unused",
-        ],
-    );
-    let err = stderr_of_failure(&refused);
+        ];
+        stderr_of_failure(&run("learner", &serve))
+    };
+    let err = refusal(&missing);
     assert!(err.contains("`tokens` is not set"), "{err}");
     let garbled = write(&dir.path().join("garbled.crt"), "not a certificate");
     let bad_cert = write(
@@ -478,19 +436,7 @@ fn a_service_without_its_tokens_or_certificate_does_not_start() {
             credentials().dir.join("tokens")
         ),
     );
-    let refused = run(
-        "learner",
-        &[
-            "serve",
-            "--security",
-            &bad_cert,
-            "--config",
-            &config,
-            "--run-dir",
-            "unused",
-        ],
-    );
-    let err = stderr_of_failure(&refused);
+    let err = refusal(&bad_cert);
     assert!(
         err.contains("`cert`") && err.contains("bad-cert.toml"),
         "{err}"
