@@ -5,9 +5,9 @@ use burn::tensor::Device;
 use rayon::prelude::*;
 use serde::Serialize;
 use std::time::{Duration, Instant};
+use tweezer_config::ConfigError;
 use tweezer_gym::{
-    Action, ConfigError, Env, EnvConfig, Frame, ImageConfig, Outcome, Policy, Renderer,
-    UniformRandom, VecEnv,
+    Action, Env, EnvConfig, Frame, ImageConfig, Outcome, Policy, Renderer, UniformRandom, VecEnv,
 };
 use tweezer_nets::{ActorConfig, EncoderConfig, NetworkPolicy};
 

@@ -2,7 +2,8 @@
 
 use serde::{Deserialize, Serialize};
 use std::path::Path;
-use tweezer_gym::{ConfigError, EnvConfig, SplitMix64, read_toml};
+use tweezer_config::{ConfigError, read_toml};
+use tweezer_gym::{EnvConfig, SplitMix64};
 
 /// The whole file.
 #[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
@@ -54,7 +55,8 @@ pub struct ActorConfig {
     /// (a Kubernetes Deployment, whose ids are pod names) then draw
     /// different episodes.
     pub seed_from_id: bool,
-    /// Standard deviation of the Gaussian action noise (SPEC §4: 0.1).
+    /// Standard deviation of the Gaussian action noise (`docs/spec.md` §4:
+    /// 0.1).
     pub noise: f64,
     /// Address of the Prometheus endpoint (`GET /metrics`; the security
     /// file then needs a certificate, key and tokens); none unless set.

@@ -3,7 +3,7 @@
 
 mod bench;
 mod config;
-mod exposition;
+mod prometheus_metrics;
 mod stream;
 
 use anyhow::bail;
@@ -14,16 +14,16 @@ use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::sync::atomic::AtomicBool;
 use std::time::Duration;
-use tweezer_gym::{
-    EnvConfig, EvalSummary, Greedy, Policy, Seeds, UniformRandom, evaluate, init_logging,
-};
+use tweezer_gym::{EnvConfig, EvalSummary, Greedy, Policy, Seeds, UniformRandom, evaluate};
 use tweezer_nets::NetworkPolicy;
+use tweezer_process::init_logging;
 
 /// Tweezer RL actor: steps virtual optical-tweezers environments.
 #[derive(Parser)]
 #[command(version, about)]
 struct Cli {
-    /// TOML config file: `[env]` and `[actor]` tables over SPEC defaults.
+    /// TOML config file: `[env]` and `[actor]` tables over the defaults of
+    /// `docs/spec.md`.
     #[arg(long, global = true, value_name = "FILE")]
     config: Option<PathBuf>,
     #[command(subcommand)]
@@ -39,7 +39,7 @@ enum Command {
         #[arg(long, value_name = "ADDR")]
         learner: Option<String>,
         /// The security file: the CA that signed the learner's certificate
-        /// and this actor's token (see the README's Security section).
+        /// and this actor's token (see docs/operations.md, Security).
         #[arg(long, env = tweezer_rpc::SECURITY_ENV, value_name = "FILE")]
         security: Option<PathBuf>,
         /// This actor's id instead of `actor.id`.
@@ -83,9 +83,11 @@ enum Command {
         #[arg(long)]
         json: bool,
     },
-    /// Print the effective configuration (the file over SPEC defaults) as TOML.
+    /// Print the effective configuration (the file over the defaults of
+    /// `docs/spec.md`) as TOML.
     Config,
-    /// Run the greedy baseline on a few seeds and draw the paper's Figs. 5 and 6.
+    /// Run the greedy baseline on a few seeds and draw the paper's Figs. 5 and
+    /// 6.
     Demo {
         /// Episode seeds.
         #[arg(long, default_value = "0..4")]

@@ -1,14 +1,14 @@
-//! `actor run`: steps vectorised environments with the learner's current
-//! policy and streams the steps to it.
+//! `actor run`: steps vectorised environments with the learner's current policy
+//! and streams the steps to it.
 //!
 //! Actions are uniformly random while the learner's acknowledgements say so
-//! (SPEC §4's first 10,000 steps), then the newest snapshot's actions plus
-//! Gaussian noise. At most `max_unacked` batches are in flight: when the
-//! learner applies back-pressure the actor waits instead of queueing. When
-//! the learner goes away the actor reconnects with exponential backoff and
-//! jitter and resends the batches it has no acknowledgement for; the
-//! learner recognises a resent batch by its sequence number and stores it
-//! once; a restarted actor numbers its batches on from the clock, above its
+//! (`docs/spec.md` §4's first 10,000 steps), then the newest snapshot's actions
+//! plus Gaussian noise. At most `max_unacked` batches are in flight: when the
+//! learner applies back-pressure the actor waits instead of queueing. When the
+//! learner goes away the actor reconnects with exponential backoff and jitter
+//! and resends the batches it has no acknowledgement for; the learner
+//! recognises a resent batch by its sequence number and stores it once; a
+//! restarted actor numbers its batches on from the clock, above its
 //! predecessor's.
 
 use crate::config::ActorFile;
@@ -21,10 +21,9 @@ use std::sync::mpsc;
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 use tokio::runtime::Runtime;
-use tweezer_gym::{
-    Action, Outcome, Policy, Renderer, SplitMix64, UniformRandom, VecEnv, stop_signal,
-};
+use tweezer_gym::{Action, Outcome, Policy, Renderer, SplitMix64, UniformRandom, VecEnv};
 use tweezer_nets::NetworkPolicy;
+use tweezer_process::stop_signal;
 use tweezer_proto::pb::learner_client::LearnerClient;
 use tweezer_proto::pb::snapshot_request::Selector;
 use tweezer_proto::{download_snapshot, pb, step_to_wire};
@@ -264,7 +263,7 @@ impl Actor {
             .with_context(|| format!("cannot listen on {listen} (actor.metrics_listen)"))?;
         let addr = listener.local_addr()?;
         tracing::info!(metrics_addr = %addr, "Prometheus metrics at /metrics");
-        let registry = Arc::new(crate::exposition::prometheus(
+        let registry = Arc::new(crate::prometheus_metrics::prometheus(
             self.published.clone(),
             &self.batch_seconds,
         ));

@@ -12,11 +12,9 @@ use tweezer_rpc::AuthChannel;
 
 /// The learner's status.
 async fn status(client: &mut LearnerClient<AuthChannel>) -> anyhow::Result<pb::LearnerStatus> {
-    Ok(client
-        .get_status(pb::LearnerStatusRequest {})
+    tweezer_rpc::learner_status(client)
         .await
-        .map_err(|e| call_error("GetStatus", e))?
-        .into_inner())
+        .map_err(|e| call_error("GetStatus", e))
 }
 
 /// Runs a learner command against the learner at `address`, connecting as

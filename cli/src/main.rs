@@ -174,10 +174,10 @@ pub enum AgentCommand {
     /// Start an episode toward a target.
     Start {
         /// Target relative to the trap, µm along the image axes.
-        #[arg(long, value_name = "DX,DY", value_parser = tweezer_gym::parse_pair, allow_hyphen_values = true, conflicts_with = "absolute_mm")]
+        #[arg(long, value_name = "DX,DY", value_parser = tweezer_process::parse_pair, allow_hyphen_values = true, conflicts_with = "absolute_mm")]
         target_um: Option<[f64; 2]>,
         /// Target as stage positions X,Y, mm.
-        #[arg(long, value_name = "X,Y", value_parser = tweezer_gym::parse_pair)]
+        #[arg(long, value_name = "X,Y", value_parser = tweezer_process::parse_pair)]
         absolute_mm: Option<[f64; 2]>,
         /// Digital twin only: lay out this episode seed (and, without a
         /// target, aim at its target).

@@ -322,7 +322,7 @@ mod tests {
     }
 
     #[test]
-    fn draws_both_figures() {
+    fn an_episode_and_twelve_targets_draw_as_png_figures() {
         let dir = tempfile::tempdir().unwrap();
         let config = EnvConfig::default();
         let one = record(&config, 3, Target::Random, &mut Greedy).unwrap();

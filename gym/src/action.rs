@@ -80,7 +80,7 @@ mod tests {
     }
 
     #[test]
-    fn clipping_saturates() {
+    fn clipped_actions_saturate_at_the_unit_box() {
         assert_eq!(
             Action::clipped(3.0, -7.5).unwrap().components(),
             [1.0, -1.0]

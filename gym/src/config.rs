@@ -1,11 +1,12 @@
-//! The environment's configuration: SPEC §1–2 as typed defaults, loadable
-//! from TOML and validated with errors that name the offending field.
+//! The environment's configuration: `docs/spec.md` §1–2 as typed defaults,
+//! loadable from TOML and validated with errors that name the offending field.
 
-use serde::de::DeserializeOwned;
 use serde::{Deserialize, Serialize};
 use std::path::Path;
+use tweezer_config::{ConfigError, read_toml};
 
-/// Everything that defines the virtual environment. Defaults are SPEC §2.
+/// Everything that defines the virtual environment. Defaults are `docs/spec.md`
+/// §2.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct EnvConfig {
@@ -31,7 +32,8 @@ pub struct EnvConfig {
     pub target_distance_px: f64,
     /// Success: trap centre within this distance of the target (inclusive), px.
     pub success_radius_px: f64,
-    /// Collision: a free sphere centre within this distance of the trap centre (inclusive), px.
+    /// Collision: a free sphere centre within this distance of the trap centre
+    /// (inclusive), px.
     pub collision_radius_px: f64,
     /// Steps after which an episode is truncated.
     pub time_limit: u32,
@@ -124,56 +126,11 @@ impl Default for ImageConfig {
     }
 }
 
-/// A configuration value that is out of range, named by its TOML path.
-#[derive(Debug, thiserror::Error, PartialEq)]
-pub enum ConfigError {
-    /// A field holds a value it must not.
-    #[error("invalid config field `{field}`: {reason}")]
-    Invalid {
-        /// Dotted path of the field, as written in TOML.
-        field: String,
-        /// What is wrong with it.
-        reason: String,
-    },
-    /// The TOML text does not parse or names unknown fields.
-    #[error("invalid config: {0}")]
-    Parse(String),
-    /// The file cannot be read.
-    #[error("cannot read config file {path}: {reason}")]
-    Read {
-        /// The file.
-        path: String,
-        /// The operating system's reason.
-        reason: String,
-    },
-}
-
-fn invalid(field: &str, reason: impl Into<String>) -> ConfigError {
-    ConfigError::Invalid {
-        field: field.to_string(),
-        reason: reason.into(),
-    }
-}
-
-impl ConfigError {
-    /// The same error for a configuration nested under `table` in a larger
-    /// file: field `time_limit` becomes `env.time_limit`.
-    pub fn in_table(self, table: &str) -> Self {
-        match self {
-            Self::Invalid { field, reason } => Self::Invalid {
-                field: format!("{table}.{field}"),
-                reason,
-            },
-            other => other,
-        }
-    }
-}
-
 fn positive(field: &str, value: f64) -> Result<(), ConfigError> {
     if value.is_finite() && value > 0.0 {
         Ok(())
     } else {
-        Err(invalid(
+        Err(ConfigError::invalid(
             field,
             format!("must be a finite number > 0, got {value}"),
         ))
@@ -184,61 +141,11 @@ fn finite(field: &str, value: f64) -> Result<(), ConfigError> {
     if value.is_finite() {
         Ok(())
     } else {
-        Err(invalid(field, format!("must be finite, got {value}")))
+        Err(ConfigError::invalid(
+            field,
+            format!("must be finite, got {value}"),
+        ))
     }
-}
-
-/// A process's config file while the environment is all it configures: an
-/// `[env]` table over SPEC defaults. Each process grows its own tables.
-#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
-#[serde(default, deny_unknown_fields)]
-pub struct ProcessConfig {
-    /// The virtual environment.
-    pub env: EnvConfig,
-}
-
-impl ProcessConfig {
-    /// The defaults, or the validated contents of `path`.
-    pub fn load(path: Option<&Path>) -> Result<Self, ConfigError> {
-        let Some(path) = path else {
-            return Ok(Self::default());
-        };
-        let config: Self = read_toml(path)?;
-        config.env.validate().map_err(|e| e.in_table("env"))?;
-        Ok(config)
-    }
-
-    /// The configuration as TOML, every default written out.
-    pub fn to_toml(&self) -> String {
-        toml::to_string(self).expect("every config field is TOML-representable")
-    }
-}
-
-/// The `--config FILE` argument every process binary takes.
-#[cfg(feature = "cli")]
-#[derive(Clone, Debug, Default, clap::Args)]
-pub struct ConfigArgs {
-    /// TOML config file (an `[env]` table overrides SPEC defaults).
-    #[arg(long = "config", global = true, value_name = "FILE")]
-    pub path: Option<std::path::PathBuf>,
-}
-
-#[cfg(feature = "cli")]
-impl ConfigArgs {
-    /// The defaults, or the validated contents of the file.
-    pub fn load(&self) -> Result<ProcessConfig, ConfigError> {
-        ProcessConfig::load(self.path.as_deref())
-    }
-}
-
-/// Reads and parses a TOML file into any configuration type; errors name
-/// the file. Validation is the caller's.
-pub fn read_toml<T: DeserializeOwned>(path: &Path) -> Result<T, ConfigError> {
-    let text = std::fs::read_to_string(path).map_err(|e| ConfigError::Read {
-        path: path.display().to_string(),
-        reason: e.to_string(),
-    })?;
-    toml::from_str(&text).map_err(|e| ConfigError::Parse(format!("{}: {e}", path.display())))
 }
 
 impl EnvConfig {
@@ -259,21 +166,21 @@ impl EnvConfig {
     /// Checks every field; the error names the first one out of range.
     pub fn validate(&self) -> Result<(), ConfigError> {
         if self.fov_px.contains(&0) {
-            return Err(invalid("fov_px", "both sides must be > 0"));
+            return Err(ConfigError::invalid("fov_px", "both sides must be > 0"));
         }
         positive("world_px", self.world_px[0])?;
         positive("world_px", self.world_px[1])?;
         if self.world_px[0] < f64::from(self.fov_px[0])
             || self.world_px[1] < f64::from(self.fov_px[1])
         {
-            return Err(invalid(
+            return Err(ConfigError::invalid(
                 "world_px",
                 "the world must be at least as large as the field of view",
             ));
         }
         positive("sphere_diameter_px", self.sphere_diameter_px)?;
         if self.min_free_spheres > self.max_free_spheres {
-            return Err(invalid(
+            return Err(ConfigError::invalid(
                 "min_free_spheres",
                 format!(
                     "{} is more than max_free_spheres = {}",
@@ -282,29 +189,32 @@ impl EnvConfig {
             ));
         }
         if self.max_free_spheres > 1_000_000 {
-            return Err(invalid("max_free_spheres", "must be at most 1,000,000"));
+            return Err(ConfigError::invalid(
+                "max_free_spheres",
+                "must be at most 1,000,000",
+            ));
         }
         finite("brownian_accel_px", self.brownian_accel_px)?;
         if self.brownian_accel_px < 0.0 {
-            return Err(invalid("brownian_accel_px", "must be >= 0"));
+            return Err(ConfigError::invalid("brownian_accel_px", "must be >= 0"));
         }
         finite("max_sphere_speed_px", self.max_sphere_speed_px)?;
         if self.max_sphere_speed_px < 0.0 {
-            return Err(invalid("max_sphere_speed_px", "must be >= 0"));
+            return Err(ConfigError::invalid("max_sphere_speed_px", "must be >= 0"));
         }
         if 2.0 * self.max_sphere_speed_px >= self.world_px[0].min(self.world_px[1]) {
-            return Err(invalid(
+            return Err(ConfigError::invalid(
                 "max_sphere_speed_px",
                 "must be less than half the world's smaller side",
             ));
         }
         finite("start_clearance_px", self.start_clearance_px)?;
         if self.start_clearance_px < 0.0 {
-            return Err(invalid("start_clearance_px", "must be >= 0"));
+            return Err(ConfigError::invalid("start_clearance_px", "must be >= 0"));
         }
         let half_diagonal = 0.5 * self.world_px[0].hypot(self.world_px[1]);
         if self.start_clearance_px >= 0.5 * half_diagonal {
-            return Err(invalid(
+            return Err(ConfigError::invalid(
                 "start_clearance_px",
                 "leaves too little of the world to place free spheres in",
             ));
@@ -313,20 +223,20 @@ impl EnvConfig {
         positive("target_distance_px", self.target_distance_px)?;
         finite("success_radius_px", self.success_radius_px)?;
         if self.success_radius_px < 0.0 {
-            return Err(invalid("success_radius_px", "must be >= 0"));
+            return Err(ConfigError::invalid("success_radius_px", "must be >= 0"));
         }
         if self.success_radius_px >= self.target_distance_px {
-            return Err(invalid(
+            return Err(ConfigError::invalid(
                 "success_radius_px",
                 "must be smaller than target_distance_px, or every episode starts at the target",
             ));
         }
         finite("collision_radius_px", self.collision_radius_px)?;
         if self.collision_radius_px < 0.0 {
-            return Err(invalid("collision_radius_px", "must be >= 0"));
+            return Err(ConfigError::invalid("collision_radius_px", "must be >= 0"));
         }
         if self.collision_radius_px >= self.start_clearance_px && self.start_clearance_px > 0.0 {
-            return Err(invalid(
+            return Err(ConfigError::invalid(
                 "collision_radius_px",
                 "must be smaller than start_clearance_px, or episodes can start in a collision",
             ));
@@ -334,16 +244,22 @@ impl EnvConfig {
         // Collisions are scored among the spheres the camera can see.
         let visible = 0.5 * f64::from(self.fov_px[0].min(self.fov_px[1])) + self.sphere_radius_px();
         if self.collision_radius_px > visible {
-            return Err(invalid(
+            return Err(ConfigError::invalid(
                 "collision_radius_px",
                 format!("must be at most {visible} px, so that a collision happens in view"),
             ));
         }
         if self.time_limit == 0 {
-            return Err(invalid("time_limit", "must be at least 1 step"));
+            return Err(ConfigError::invalid(
+                "time_limit",
+                "must be at least 1 step",
+            ));
         }
         if self.time_limit > 1_000_000 {
-            return Err(invalid("time_limit", "must be at most 1,000,000 steps"));
+            return Err(ConfigError::invalid(
+                "time_limit",
+                "must be at most 1,000,000 steps",
+            ));
         }
         finite("rewards.time", self.rewards.time)?;
         finite("rewards.carry", self.rewards.carry)?;
@@ -368,10 +284,13 @@ impl ImageConfig {
     /// shrunk by the same factor, so that pixels stay square.
     pub fn validate(&self, fov_px: [u32; 2]) -> Result<(), ConfigError> {
         if self.width == 0 || self.height == 0 {
-            return Err(invalid("image", "width and height must be > 0"));
+            return Err(ConfigError::invalid(
+                "image",
+                "width and height must be > 0",
+            ));
         }
         if self.width > fov_px[0] || self.height > fov_px[1] {
-            return Err(invalid(
+            return Err(ConfigError::invalid(
                 "image",
                 format!(
                     "{}x{} is finer than the {}x{} px field of view",
@@ -383,7 +302,7 @@ impl ImageConfig {
         if u64::from(self.width) * u64::from(fov_px[1])
             != u64::from(self.height) * u64::from(fov_px[0])
         {
-            return Err(invalid(
+            return Err(ConfigError::invalid(
                 "image",
                 format!(
                     "{}x{} does not have the field of view's aspect ratio {}:{}",
@@ -462,26 +381,31 @@ mod tests {
     }
 
     #[test]
-    fn process_files_name_nested_fields_and_round_trip() {
+    fn file_errors_name_the_file_and_nested_fields_their_table() {
         let dir = std::env::temp_dir().join(format!("tweezer-config-{}", std::process::id()));
         std::fs::create_dir_all(&dir).unwrap();
         let path = dir.join("bad.toml");
-        std::fs::write(&path, "[env]\ntime_limit = 0\n").unwrap();
-        let err = ProcessConfig::load(Some(&path)).unwrap_err();
+        std::fs::write(&path, "time_limit = 0\n").unwrap();
+        let err = EnvConfig::from_file(&path).unwrap_err().in_table("env");
         assert_eq!(field_of(err), "env.time_limit");
-        std::fs::write(&path, "[env]\ntime_limt = 3\n").unwrap();
-        let err = ProcessConfig::load(Some(&path)).unwrap_err().to_string();
+        std::fs::write(&path, "time_limt = 3\n").unwrap();
+        let err = EnvConfig::from_file(&path).unwrap_err().to_string();
         assert!(
             err.contains("bad.toml") && err.contains("time_limt"),
             "{err}"
         );
-        let err = ProcessConfig::load(Some(&dir.join("missing.toml"))).unwrap_err();
+        let err = EnvConfig::from_file(&dir.join("missing.toml")).unwrap_err();
         assert!(matches!(err, ConfigError::Read { .. }));
 
-        let mut config = ProcessConfig::default();
-        config.env.rewards.off = vec![RewardComponent::Carry];
-        std::fs::write(&path, config.to_toml()).unwrap();
-        assert_eq!(ProcessConfig::load(Some(&path)).unwrap(), config);
+        let config = EnvConfig {
+            rewards: RewardConfig {
+                off: vec![RewardComponent::Carry],
+                ..RewardConfig::default()
+            },
+            ..EnvConfig::default()
+        };
+        std::fs::write(&path, toml::to_string(&config).unwrap()).unwrap();
+        assert_eq!(EnvConfig::from_file(&path).unwrap(), config);
         std::fs::remove_dir_all(&dir).unwrap();
     }
 

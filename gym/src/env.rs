@@ -1,17 +1,18 @@
-//! The virtual optical-tweezers environment (SPEC §2).
+//! The virtual optical-tweezers environment (`docs/spec.md` §2).
 //!
 //! The trap sits at the FOV centre; the stage moves the sample under it. Only
-//! free spheres that could be in the field of view are simulated each step
-//! (see `watch`); the others catch up from their own random streams when they
-//! could matter, so laziness changes speed, never results.
+//! free spheres that could be in the field of view are simulated each step (see
+//! `wake_schedule`); the others catch up from their own random streams when
+//! they could matter, so laziness changes speed, never results.
 
 use crate::action::Action;
-use crate::config::{ConfigError, EnvConfig, RewardComponent};
+use crate::config::{EnvConfig, RewardComponent};
 use crate::observation::Observation;
 use crate::rng::SplitMix64;
 use crate::spheres::{FreeSphere, Motion};
-use crate::watch::Watch;
+use crate::wake_schedule::WakeSchedule;
 use std::f64::consts::TAU;
+use tweezer_config::ConfigError;
 
 const COUNT_TAG: u64 = 1;
 const TARGET_TAG: u64 = 2;
@@ -109,7 +110,7 @@ pub struct Env {
     motion: Motion,
     seed: u64,
     spheres: Vec<FreeSphere>,
-    watch: Watch,
+    wake: WakeSchedule,
     t: u32,
     trap: [f64; 2],
     target: [f64; 2],
@@ -132,7 +133,7 @@ impl Env {
             motion: Motion::for_config(&config),
             seed: 0,
             spheres: Vec::with_capacity(config.max_free_spheres as usize),
-            watch: Watch::new(&config),
+            wake: WakeSchedule::new(&config),
             t: 0,
             trap: [0.0; 2],
             target: [0.0; 2],
@@ -238,7 +239,7 @@ impl Env {
         self.target = target;
         self.initial_distance = distance(trap, target).max(f64::MIN_POSITIVE);
         self.outcome = Outcome::Running;
-        self.watch.start(&self.spheres, trap);
+        self.wake.start(&self.spheres, trap);
         self.observe();
     }
 
@@ -251,7 +252,7 @@ impl Env {
         let radius = self.config.sphere_radius_px();
         let r2 = radius * radius;
         self.observation.centres.clear();
-        for &k in self.watch.awake() {
+        for &k in self.wake.awake() {
             let p = self.spheres[k as usize].pos;
             let (x, y) = (p[0] - origin[0], p[1] - origin[1]);
             // Distance from the centre to the FOV rectangle.
@@ -287,7 +288,7 @@ impl Env {
 
         let after = distance(self.trap, self.target);
         let reach = self.config.collision_radius_px;
-        let collided = self.watch.awake().iter().any(|&k| {
+        let collided = self.wake.awake().iter().any(|&k| {
             let p = self.spheres[k as usize].pos;
             let (dx, dy) = (p[0] - self.trap[0], p[1] - self.trap[1]);
             dx * dx + dy * dy <= reach * reach
@@ -357,7 +358,7 @@ impl Env {
     fn advance(&mut self, trap: [f64; 2]) {
         self.t += 1;
         self.trap = trap;
-        self.watch
+        self.wake
             .refresh(&mut self.spheres, &self.motion, self.trap, self.t);
     }
 

@@ -1,12 +1,13 @@
 //! Evaluation of a policy over a list of episode seeds.
 
 use crate::action::Action;
-use crate::config::{ConfigError, EnvConfig};
+use crate::config::EnvConfig;
 use crate::env::{Env, Outcome};
 use crate::policy::Policy;
 use crate::vec_env::EpisodeStats;
 use rayon::prelude::*;
 use serde::Serialize;
+use tweezer_config::ConfigError;
 
 /// Rates and means over evaluated episodes.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize)]

@@ -13,8 +13,6 @@ mod ideal;
 mod num;
 mod observation;
 mod policy;
-#[cfg(feature = "cli")]
-mod process;
 mod render;
 mod rng;
 mod seeds;
@@ -22,20 +20,14 @@ mod spheres;
 mod step_record;
 mod trajectory;
 mod vec_env;
-mod watch;
+mod wake_schedule;
 
 pub use action::{Action, ActionError};
-#[cfg(feature = "cli")]
-pub use config::ConfigArgs;
-pub use config::{
-    ConfigError, EnvConfig, ImageConfig, ProcessConfig, RewardComponent, RewardConfig, read_toml,
-};
+pub use config::{EnvConfig, ImageConfig, RewardComponent, RewardConfig};
 pub use env::{Env, EpisodeError, EpisodeOver, Layout, Outcome, RewardParts, StepResult, Target};
 pub use eval::{EvalSummary, evaluate};
 pub use observation::{Observation, ObservationBounds, ObservationError};
 pub use policy::{Greedy, Policy, UniformRandom};
-#[cfg(feature = "cli")]
-pub use process::{init_logging, parse_pair, stop_signal};
 pub use render::{Frame, Pixel, Renderer, SizeMismatch};
 pub use rng::SplitMix64;
 pub use seeds::{Seeds, SeedsError};

@@ -1,4 +1,4 @@
-//! Sphere centres → binary image, by SPEC §2's exact pixel rule.
+//! Sphere centres → binary image, by `docs/spec.md` §2's exact pixel rule.
 //!
 //! Image pixel (column j, row i) covers full-resolution
 //! [s·j, s·j + s) x [s·i, s·i + s); it is on iff its centre
@@ -7,8 +7,9 @@
 //! ends come from a square root and are then settled by the rule itself, so
 //! the result is the rule's, bit for bit, at any resolution.
 
-use crate::config::{ConfigError, EnvConfig, ImageConfig};
+use crate::config::{EnvConfig, ImageConfig};
 use crate::num;
+use tweezer_config::ConfigError;
 
 /// A pixel type a binary image can be written in.
 pub trait Pixel: Copy + Send + Sync + 'static {
@@ -155,7 +156,7 @@ impl Renderer {
     }
 
     /// Whether image pixel (j, i) is covered by a sphere at `centre`: the
-    /// SPEC's rule itself.
+    /// rule of `docs/spec.md` §2 itself.
     #[inline]
     pub fn covers(&self, centre: [f64; 2], j: i64, i: i64) -> bool {
         let dx = pixel_centre(self.scale, j) - centre[0];

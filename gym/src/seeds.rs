@@ -70,7 +70,7 @@ mod tests {
     }
 
     #[test]
-    fn refuses_nonsense() {
+    fn malformed_seed_lists_are_refused() {
         for bad in ["", "a..b", "3..3", "9..2", "1,,2", "0..99999999999"] {
             let err = bad.parse::<Seeds>().unwrap_err();
             assert!(err.to_string().contains("invalid seed list"), "{err}");

@@ -1,10 +1,11 @@
 //! Recorded episodes, for pictures: the trap's path and every free sphere's.
 
 use crate::action::Action;
-use crate::config::{ConfigError, EnvConfig};
+use crate::config::EnvConfig;
 use crate::env::EpisodeError;
 use crate::env::{Env, Outcome, Target};
 use crate::policy::Policy;
+use tweezer_config::ConfigError;
 
 /// One episode, step by step, in world px.
 #[derive(Clone, Debug, PartialEq)]

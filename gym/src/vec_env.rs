@@ -3,13 +3,14 @@
 //! for the transition and the slot's observation is the next episode's first.
 
 use crate::action::Action;
-use crate::config::{ConfigError, EnvConfig};
+use crate::config::EnvConfig;
 use crate::env::{Env, Outcome, StepResult};
 use crate::observation::Observation;
 use crate::policy::UniformRandom;
 use crate::rng::SplitMix64;
 use crate::step_record::{EpisodeEnd, StepRecord};
 use rayon::prelude::*;
+use tweezer_config::ConfigError;
 
 const SLOT_TAG: u64 = 0x5107_0000_0000;
 

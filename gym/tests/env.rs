@@ -1,4 +1,4 @@
-//! The environment against SPEC §2: rewards, distances, step order,
+//! The environment against `docs/spec.md` §2: rewards, distances, step order,
 //! truncation, determinism, and the lazy simulation against an eager one.
 
 use tweezer_gym::{

@@ -11,7 +11,7 @@ proptest! {
     #![proptest_config(ProptestConfig::with_cases(48))]
 
     #[test]
-    fn invariants_hold(seed in any::<u64>(), moves in actions()) {
+    fn any_actions_keep_the_trap_image_vector_and_spheres_consistent(seed in any::<u64>(), moves in actions()) {
         let config = EnvConfig::default();
         let renderer = Renderer::for_config(&config).unwrap();
         let mut image = vec![0u8; renderer.pixels()];

@@ -1,12 +1,14 @@
-//! The renderer against SPEC §2's pixel rule, evaluated pixel by pixel.
+//! The renderer against `docs/spec.md` §2's pixel rule, evaluated pixel by
+//! pixel.
 
 use tweezer_gym::{
     Action, Env, EnvConfig, Frame, ImageConfig, Outcome, Policy, Renderer, SizeMismatch,
     SplitMix64, UniformRandom,
 };
 
-/// SPEC's rule, pixel by pixel: on iff the pixel centre is within `radius`
-/// of some centre (the trapped sphere at the FOV centre included).
+/// The rule of `docs/spec.md` §2, pixel by pixel: on iff the pixel centre is
+/// within `radius` of some centre (the trapped sphere at the FOV centre
+/// included).
 fn reference(fov: [u32; 2], image: ImageConfig, radius: f64, centres: &[[f32; 2]]) -> Vec<u8> {
     let s = f64::from(fov[0]) / f64::from(image.width);
     let mut discs: Vec<[f64; 2]> = vec![[f64::from(fov[0]) / 2.0, f64::from(fov[1]) / 2.0]];

@@ -2,17 +2,17 @@
 //! training, segmentation, the stages, the control loop, the policy, the
 //! camera, the overlay, the service, and the digital twin.
 
-use crate::camera::CameraConfig;
 use crate::control::ControlConfig;
 use crate::overlay::OverlayConfig;
 use crate::policy_source::PolicyConfig;
-use crate::segment::SegmentConfig;
-use crate::stages::StagesConfig;
 use crate::twin::TwinConfig;
+use kdc101::StagesConfig;
 use serde::{Deserialize, Serialize};
 use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
-use tweezer_gym::{ConfigError, EnvConfig, read_toml};
+use tweezer_config::{ConfigError, read_toml};
+use tweezer_gym::EnvConfig;
+use tweezer_vision::SegmentConfig;
 
 /// Everything `hardware-agent` reads from its `--config` file; a missing
 /// table or field takes its default.
@@ -101,7 +101,7 @@ impl AgentConfig {
         self.env.validate().map_err(|e| e.in_table("env"))?;
         self.segmentation
             .validate()
-            .map_err(|e| invalid("segmentation", e.to_string()))?;
+            .map_err(|e| ConfigError::invalid("segmentation", e.to_string()))?;
         for (table, check) in [
             ("stages", self.stages.validate()),
             ("control", self.control.validate()),
@@ -109,7 +109,7 @@ impl AgentConfig {
             ("overlay", self.overlay.validate()),
             ("twin", self.twin.validate()),
         ] {
-            check.map_err(|reason| invalid(table, reason))?;
+            check.map_err(|reason| ConfigError::invalid(table, reason))?;
         }
         Ok(())
     }
@@ -120,9 +120,35 @@ impl AgentConfig {
     }
 }
 
-fn invalid(field: &str, reason: String) -> ConfigError {
-    ConfigError::Invalid {
-        field: field.into(),
-        reason,
+/// Where frames come from.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum CameraSource {
+    /// A directory of frame files, replayed in name order.
+    Replay,
+    /// The digital twin's camera (what `--twin` selects).
+    Twin,
+}
+
+/// The `[camera]` table.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct CameraConfig {
+    /// The backend.
+    pub source: CameraSource,
+    /// The directory of frames (source = "replay").
+    pub dir: PathBuf,
+    /// Whether the replay starts over after the last frame.
+    #[serde(rename = "loop")]
+    pub looping: bool,
+}
+
+impl Default for CameraConfig {
+    fn default() -> Self {
+        Self {
+            source: CameraSource::Twin,
+            dir: PathBuf::from("frames"),
+            looping: false,
+        }
     }
 }

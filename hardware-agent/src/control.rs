@@ -1,7 +1,7 @@
-//! The control loop of the physical and augmented environments (SPEC §5–6):
-//! frame → segmentation → the trapped sphere and the free ones → observation
-//! (free spheres, virtual obstacles and the target vector from the stage
-//! positions) → policy → stage velocities, at a fixed rate, under a
+//! The control loop of the physical and augmented environments (`docs/spec.md`
+//! §5–6): frame → segmentation → the trapped sphere and the free ones →
+//! observation (free spheres, virtual obstacles and the target vector from the
+//! stage positions) → policy → stage velocities, at a fixed rate, under a
 //! watchdog. The episode is scored as the virtual environment scores it.
 
 mod halt;

@@ -5,21 +5,21 @@
 //! an emergency stop, without waiting for the loop.
 
 mod control_thread;
-mod exposition;
+mod prometheus_metrics;
 mod service;
-mod status;
+mod state;
 
 use anyhow::Context;
 use control_thread::{ControlThread, Job};
 use service::AgentService;
-use status::Shared;
+use state::DaemonState;
 use std::sync::Arc;
 use tokio::net::TcpListener;
-use tweezer_gym::{init_logging, stop_signal};
 use tweezer_hardware_agent::config::AgentConfig;
 use tweezer_hardware_agent::control::HaltKind;
 use tweezer_hardware_agent::instrument::Instrument;
 use tweezer_hardware_agent::policy_source::LoadedPolicy;
+use tweezer_process::{init_logging, stop_signal};
 use tweezer_proto::pb::hardware_agent_server::HardwareAgentServer;
 use tweezer_rpc::{Security, ServerSecurity};
 
@@ -45,7 +45,7 @@ pub fn serve(
     tracing::info!(policy = %policy.description, "policy loaded");
     let mut instrument = Instrument::open(&config, twin)?;
     let stopper = instrument.rig().stopper();
-    let shared = Arc::new(Shared::new(stopper, &policy, instrument.overlay_len()));
+    let shared = Arc::new(DaemonState::new(stopper, &policy, instrument.overlay_len()));
     let (jobs, thread) =
         ControlThread::spawn(instrument, policy, config.clone(), security, shared.clone())?;
     let runtime = tokio::runtime::Builder::new_multi_thread()
@@ -76,7 +76,7 @@ pub fn serve(
             let metrics_addr = listener.local_addr()?;
             tracing::info!(%metrics_addr, "Prometheus metrics at /metrics");
             let security = listener_security.clone();
-            let registry = Arc::new(exposition::prometheus(shared.clone()));
+            let registry = Arc::new(prometheus_metrics::prometheus(shared.clone()));
             let mut done = stopped.clone();
             tokio::spawn(async move {
                 let shutdown = async move {

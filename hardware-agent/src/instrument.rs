@@ -2,19 +2,20 @@
 //! configured camera, or the digital twin's stages and camera, in a rig
 //! with the overlay; and one recorded episode on it.
 
-use crate::camera::{Camera, CameraError, CameraSource, GrayFrame, ReplayCamera};
 use crate::config::AgentConfig;
+use crate::config::CameraSource;
 use crate::control::{EpisodeSummary, Halt, Rig, StepLog};
 use crate::overlay::{Overlay, OverlaySpec};
 use crate::policy_source::LoadedPolicy;
 use crate::record::{EpisodeHeader, EpisodeRecorder, RecordFiles};
-use crate::segment::Segmenter;
-use crate::stages::StagePair;
 use crate::twin::{TwinCamera, TwinStages};
+use kdc101::StagePair;
 use serde::Serialize;
 use serialport::TTYPort;
 use std::path::Path;
 use std::sync::Arc;
+use tweezer_vision::Segmenter;
+use tweezer_vision::{Camera, CameraError, GrayFrame, ReplayCamera};
 
 /// The camera an instrument was built with.
 #[derive(Debug)]

@@ -2,11 +2,8 @@
 //! its digital twin), `segment` (sphere centres in image files, for tuning
 //! segmentation on an instrument's own frames), `bench` and `config`.
 
-mod bench;
-mod bench_loop;
+mod commands;
 mod daemon;
-mod run_episodes;
-mod segment_files;
 
 use clap::{Parser, Subcommand};
 use std::path::PathBuf;
@@ -23,8 +20,8 @@ struct Cli {
     #[arg(long = "config", global = true, value_name = "FILE")]
     config: Option<PathBuf>,
     /// The security file: for `serve`, the certificate, key and accepted
-    /// tokens; for a learner's snapshot, its CA and a read token (see the
-    /// README's Security section).
+    /// tokens; for a learner's snapshot, its CA and a read token (see
+    /// docs/operations.md, Security).
     #[arg(long, global = true, env = tweezer_rpc::SECURITY_ENV, value_name = "FILE")]
     security: Option<PathBuf>,
     #[command(subcommand)]
@@ -50,7 +47,7 @@ enum Command {
         seed: u64,
         /// Target relative to the trap, µm along the image axes (required
         /// on the instrument).
-        #[arg(long, value_name = "DX,DY", value_parser = tweezer_gym::parse_pair, allow_hyphen_values = true)]
+        #[arg(long, value_name = "DX,DY", value_parser = tweezer_process::parse_pair, allow_hyphen_values = true)]
         target_um: Option<[f64; 2]>,
         /// Drive with the greedy baseline instead of the configured policy.
         #[arg(long, conflicts_with = "snapshot")]
@@ -137,7 +134,7 @@ fn main() -> anyhow::Result<()> {
             overrides,
         } => {
             overrides.apply(&mut config)?;
-            let args = run_episodes::RunArgs {
+            let args = commands::run::RunArgs {
                 twin,
                 episodes,
                 seed,
@@ -150,7 +147,7 @@ fn main() -> anyhow::Result<()> {
                 Err(tweezer_rpc::SecurityError::Missing) => None,
                 Err(e) => return Err(e.into()),
             };
-            run_episodes::run(&config, args, security.as_ref())?;
+            commands::run::run(&config, args, security.as_ref())?;
         }
         Command::Serve {
             twin,
@@ -170,7 +167,7 @@ fn main() -> anyhow::Result<()> {
             let security = tweezer_rpc::Security::load(cli.security.as_deref())?;
             daemon::serve(config, security, twin, greedy, log_json)?;
         }
-        Command::Segment { files, json } => segment_files::run(&config, &files, json)?,
+        Command::Segment { files, json } => commands::segment::run(&config, &files, json)?,
         Command::Bench {
             frames,
             episodes,
@@ -181,14 +178,14 @@ fn main() -> anyhow::Result<()> {
         } => {
             config.control.rate_hz = rate;
             config.validate()?;
-            let args = bench::BenchArgs {
+            let args = commands::bench::BenchArgs {
                 frames,
                 episodes,
                 seed,
                 snapshot,
                 json,
             };
-            bench::run(&config, &args)?;
+            commands::bench::run(&config, &args)?;
         }
     }
     Ok(())

@@ -1,8 +1,8 @@
-//! The augmented environment's virtual obstacles (SPEC §6): discs of the
-//! sphere diameter in world coordinates, merged with the detected spheres
+//! The augmented environment's virtual obstacles (`docs/spec.md` §6): discs of
+//! the sphere diameter in world coordinates, merged with the detected spheres
 //! before rendering so the policy treats both alike. Walls (rows of touching
-//! discs, e.g. the gates of the paper's Fig. 8 maze) and a keep-out zone
-//! inside the stages' travel limits are made of the same discs.
+//! discs, e.g. the gates of the paper's Fig. 8 maze) and a keep-out zone inside
+//! the stages' travel limits are made of the same discs.
 
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};

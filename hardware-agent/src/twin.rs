@@ -7,10 +7,8 @@
 
 mod optics;
 mod quality;
-mod stage_server;
 mod world;
 
 pub use optics::{Debris, OpticsConfig};
 pub use quality::{DetectionQuality, MATCH_RADIUS_PX, detection_quality, episode_scene};
-pub use stage_server::{ControllerGuard, Fault, TwinStage};
 pub use world::{TwinCamera, TwinConfig, TwinStages};

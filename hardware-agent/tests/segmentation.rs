@@ -2,9 +2,9 @@
 //! the same frames replayed from PNG and TIFF files.
 
 use tweezer_gym::{EnvConfig, SplitMix64};
-use tweezer_hardware_agent::camera::{Camera, CameraError, ReplayCamera, read_frame, write_frame};
-use tweezer_hardware_agent::segment::{SegmentConfig, SegmentError, Segmenter};
 use tweezer_hardware_agent::twin::{OpticsConfig, detection_quality, episode_scene};
+use tweezer_vision::{Camera, CameraError, ReplayCamera, read_frame, write_frame};
+use tweezer_vision::{SegmentConfig, SegmentError, Segmenter};
 
 /// Spheres on a jittered grid, 150 px apart: none touches another (debris
 /// may lie over one).
@@ -56,7 +56,7 @@ fn the_spheres_of_virtual_episodes_are_found() {
         3,
     )
     .unwrap();
-    // Touching and overlapping spheres (about one in twelve at the SPEC's
+    // Touching and overlapping spheres (about one in twelve at the spec's
     // density) are split less well than separate ones are found.
     assert!(q.spheres > 100, "{q:?}");
     assert!(q.recall >= 0.9 && q.precision >= 0.95, "{q:?}");
@@ -74,7 +74,7 @@ fn a_frame_replayed_from_png_or_tiff_is_segmented_as_the_original() {
     assert_eq!(original.len(), scene.len());
 
     // The same frame at 16 bits: every value scaled by 257.
-    let deep = tweezer_hardware_agent::camera::GrayFrame::new(
+    let deep = tweezer_vision::GrayFrame::new(
         frame.width(),
         frame.height(),
         u16::MAX,

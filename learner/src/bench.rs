@@ -1,23 +1,23 @@
 //! `learner bench`: how fast the learner's parts run on this machine.
 
-use crate::batch::to_tensors;
+use crate::learner_state::LearnerState;
 use crate::loopback::batches;
+use crate::minibatch::minibatch_tensors;
 use crate::replay::{Replay, ReplayConfig};
 use crate::service::LearnerService;
-use crate::shared::Shared;
 use crate::td3::{Td3, Td3Config};
-use crate::train::Credentials;
 use burn::tensor::{Device, Distribution, Tensor};
 use serde::Serialize;
 use std::path::Path;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 use tokio::net::TcpListener;
-use tweezer_gym::{ConfigError, EnvConfig, ObservationBounds, RandomSteps, Renderer, SplitMix64};
+use tweezer_config::ConfigError;
+use tweezer_gym::{EnvConfig, ObservationBounds, RandomSteps, Renderer, SplitMix64};
 use tweezer_proto::pb;
 use tweezer_proto::pb::learner_client::LearnerClient;
 use tweezer_proto::pb::learner_server::LearnerServer;
-use tweezer_rpc::{ClientSecurity, Security, ServerSecurity};
+use tweezer_rpc::{ClientSecurity, LoopbackCredentials, Security, ServerSecurity};
 
 /// Benchmark figures. Times are means over the timed repetitions.
 #[derive(Debug, Serialize)]
@@ -89,7 +89,7 @@ fn ingest_rate(env: &EnvConfig, server: &Path, client: &Path) -> anyhow::Result<
         .enable_all()
         .build()?;
     runtime.block_on(async {
-        let ingest = Arc::new(Shared::new(
+        let ingest = Arc::new(LearnerState::new(
             Replay::new(ReplayConfig::default()),
             None,
             ObservationBounds::for_config(env),
@@ -154,24 +154,31 @@ pub fn run(
     let training = device.clone().autodiff();
     let mut td3 = Td3::new(Td3Config::default(), h, w, &training)?;
     let mut rng = SplitMix64::new(7);
-    let mut step = || {
+    let mut sample = || {
         let sampled = replay
             .sample(batch_size, &mut rng)
             .expect("the replay is full");
-        td3.update(to_tensors(&sampled, &renderer, &training))
+        minibatch_tensors(&sampled, &renderer, &training)
     };
-    step();
-    step();
+    // Two warm-up updates, then `updates` timed ones, each step timed on
+    // its own.
+    td3.update(sample());
+    td3.update(sample());
     let updates = updates.max(2).next_multiple_of(2);
+    let (mut critic, mut actor) = (Vec::new(), Vec::new());
     let started = Instant::now();
-    let stats: Vec<_> = (0..updates).map(|_| step()).collect();
+    for _ in 0..updates {
+        let batch = sample();
+        let step = Instant::now();
+        td3.critic_step(&batch);
+        critic.push(step.elapsed().as_secs_f64() * 1e3);
+        if td3.actor_due() {
+            let step = Instant::now();
+            td3.actor_step(batch);
+            actor.push(step.elapsed().as_secs_f64() * 1e3);
+        }
+    }
     let update_ms_mean = started.elapsed().as_secs_f64() * 1e3 / updates as f64;
-    let critic: Vec<f64> = stats.iter().map(|s| s.critic_ms).collect();
-    let actor: Vec<f64> = stats
-        .iter()
-        .filter(|s| s.actor_loss.is_some())
-        .map(|s| s.actor_ms)
-        .collect();
 
     let policy = td3.policy();
     let infer = |batch: usize| {
@@ -185,8 +192,8 @@ pub fn run(
     // The ingest runs secured as deployed: the run's credentials, and
     // plaintext files beside them.
     let dir = tempfile::tempdir()?;
-    let credentials = Credentials::provision(dir.path())?;
-    let security = dir.path().join(crate::train::SECURITY_DIR);
+    let security = dir.path().to_path_buf();
+    let credentials = LoopbackCredentials::provision(&security)?;
     let plain_server = security.join("plain-learner.toml");
     let plain_client = security.join("plain-actor.toml");
     std::fs::write(&plain_server, "plaintext = true\ntokens = \"tokens\"\n")?;

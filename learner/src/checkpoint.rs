@@ -8,12 +8,12 @@
 //! "TWZCKPT1" | header length (u64 LE) | header (JSON) | parts... | SHA-256 of all before
 //! ```
 //!
-//! Files are written atomically ([`crate::fsio::write_atomic`]); a file that
-//! is truncated or corrupt fails its checksum and resuming falls back to the
-//! previous one.
+//! Files are written atomically ([`crate::durable_write::write_atomic`]);
+//! a file that is truncated or corrupt fails its checksum and resuming
+//! falls back to the previous one.
 
+use crate::durable_write::{sync_dir, write_atomic};
 use crate::episodes::Episodes;
-use crate::fsio::{sync_dir, write_atomic};
 use crate::snapshots::SnapshotsState;
 use serde::{Deserialize, Serialize};
 use sha2::{Digest, Sha256};

@@ -1,5 +1,5 @@
 //! The learner's config file: an `[env]` table and a `[learner]` table,
-//! every field defaulting to SPEC values.
+//! every field defaulting to the values of `docs/spec.md`.
 
 use crate::limiter::LimiterConfig;
 use crate::replay::ReplayConfig;
@@ -8,7 +8,8 @@ use burn::tensor::Device;
 use serde::{Deserialize, Serialize};
 use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
-use tweezer_gym::{ConfigError, EnvConfig, read_toml};
+use tweezer_config::{ConfigError, read_toml};
+use tweezer_gym::EnvConfig;
 
 /// The whole file.
 #[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
@@ -58,10 +59,10 @@ pub struct LearnerConfig {
     pub device: DeviceChoice,
     /// Seed of the replay sampler and of the networks' initial weights.
     pub seed: u64,
-    /// Transitions per update (SPEC §4: 32).
+    /// Transitions per update (`docs/spec.md` §4: 32).
     pub batch_size: usize,
     /// Transitions taken with uniformly random actions before the actors
-    /// switch to the policy (SPEC §4: 10,000).
+    /// switch to the policy (`docs/spec.md` §4: 10,000).
     pub uniform_steps: u64,
     /// The replay table.
     pub replay: ReplayConfig,

@@ -7,7 +7,7 @@ use serde::{Deserialize, Serialize};
 use std::collections::{HashMap, VecDeque};
 use tweezer_gym::{Outcome, StepRecord};
 
-/// Episodes in the rolling window (SPEC §4).
+/// Episodes in the rolling window (`docs/spec.md` §4).
 pub const WINDOW: usize = 100;
 
 /// One finished episode.

@@ -1,25 +1,24 @@
-//! The learner: actors' steps arrive over gRPC into a compact FIFO replay,
-//! TD3 trains on uniformly sampled batches as a rate limiter allows, and
-//! policy snapshots are published by version; checkpoints make it resumable.
-//! `train` runs the learner with its actors as one command; `report` draws
-//! and evaluates finished runs.
+//! The learner service: actors' steps arrive over gRPC into a compact FIFO
+//! replay, TD3 trains on uniformly sampled minibatches as a rate limiter
+//! allows, and policy snapshots are published by version; checkpoints make
+//! it resumable. The experiment runner (`tweezer-experiment`) launches it
+//! with its actors and reports on finished runs.
 
-pub mod batch;
 pub mod bench;
 pub mod checkpoint;
 pub mod config;
+pub mod durable_write;
 pub mod episodes;
-pub mod exposition;
-pub mod fsio;
+pub mod learner_state;
 pub mod limiter;
 pub mod loopback;
-pub mod metrics;
+pub mod minibatch;
+pub mod prometheus_metrics;
 pub mod replay;
-pub mod report;
+pub mod run_dir;
+pub mod run_log;
 pub mod serve;
 pub mod service;
-pub mod shared;
 pub mod snapshots;
 pub mod td3;
-pub mod train;
-pub mod training;
+pub mod trainer;

@@ -9,7 +9,7 @@
 use serde::{Deserialize, Serialize};
 use std::sync::{Condvar, Mutex, MutexGuard};
 use std::time::Duration;
-use tweezer_gym::ConfigError;
+use tweezer_config::ConfigError;
 
 /// The limiter's settings.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -36,10 +36,7 @@ impl Default for LimiterConfig {
 impl LimiterConfig {
     /// Checks every field; the error names the first one out of range.
     pub fn validate(&self) -> Result<(), ConfigError> {
-        let invalid = |field: &str, reason: &str| ConfigError::Invalid {
-            field: field.into(),
-            reason: reason.into(),
-        };
+        let invalid = ConfigError::invalid;
         if !(self.updates_per_insert.is_finite() && self.updates_per_insert > 0.0) {
             return Err(invalid(
                 "limiter.updates_per_insert",
@@ -71,6 +68,12 @@ pub enum LimiterState {
     BlockingInserts,
     /// The actors are behind: updates wait.
     WaitingForData,
+}
+
+/// How status shows the limiter's state (`state`), or that learning is
+/// paused (`None`).
+pub fn limiter_state_name(state: Option<LimiterState>) -> &'static str {
+    state.map_or("learning paused", LimiterState::as_str)
 }
 
 impl LimiterState {

@@ -1,18 +1,19 @@
 //! A learner service on a loopback port, and step batches to feed it: for
 //! the ingest benchmark and the tests, over real sockets.
 
+use crate::learner_state::LearnerState;
 use crate::service::LearnerService;
-use crate::shared::Shared;
 use std::net::SocketAddr;
 use std::sync::Arc;
 use tokio::net::TcpListener;
 use tokio_stream::wrappers::TcpListenerStream;
-use tweezer_gym::{ConfigError, EnvConfig, RandomSteps};
+use tweezer_config::ConfigError;
+use tweezer_gym::{EnvConfig, RandomSteps};
 use tweezer_proto::pb;
 use tweezer_proto::pb::learner_server::LearnerServer;
 
 /// Serves `shared` on an ephemeral loopback port; returns its address.
-pub async fn serve(shared: Arc<Shared>) -> std::io::Result<SocketAddr> {
+pub async fn serve(shared: Arc<LearnerState>) -> std::io::Result<SocketAddr> {
     let listener = TcpListener::bind("127.0.0.1:0").await?;
     let addr = listener.local_addr()?;
     tokio::spawn(

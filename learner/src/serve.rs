@@ -7,33 +7,26 @@
 
 use crate::checkpoint::{Checkpoints, Loaded};
 use crate::config::LearnerFile;
-use crate::exposition::prometheus;
-use crate::fsio::write_bytes_atomic;
+use crate::durable_write::write_bytes_atomic;
+use crate::learner_state::LearnerState;
 use crate::limiter::{Limiter, SharedLimiter};
-use crate::metrics::Metrics;
+use crate::prometheus_metrics::prometheus;
 use crate::replay::Replay;
+use crate::run_dir::RunDir;
+use crate::run_log::RunLog;
 use crate::service::LearnerService;
-use crate::shared::Shared;
 use crate::snapshots::Snapshots;
-use crate::training::Trainer;
+use crate::trainer::Trainer;
 use anyhow::{Context, bail};
-use std::path::Path;
 use std::sync::Arc;
 use tokio::net::TcpListener;
-use tweezer_gym::{ObservationBounds, stop_signal};
+use tweezer_gym::ObservationBounds;
+use tweezer_process::stop_signal;
 use tweezer_proto::pb::learner_server::LearnerServer;
 use tweezer_rpc::{Security, ServerSecurity};
 
-/// The run directory's checkpoints.
-const CHECKPOINTS: &str = "checkpoints";
-/// The run directory's snapshots.
-pub const SNAPSHOTS: &str = "snapshots";
-/// The run directory's metrics file.
-pub const METRICS: &str = "metrics.jsonl";
 /// How long clients may take to hang up once the learner stops.
 const SHUTDOWN_GRACE: std::time::Duration = std::time::Duration::from_secs(3);
-/// The effective config, written when a run starts.
-pub const CONFIG: &str = "config.toml";
 
 /// How `serve` treats the run directory `learner.run_dir`.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -53,10 +46,10 @@ pub enum Start {
 pub fn serve(file: LearnerFile, start: Start, security: &Security) -> anyhow::Result<()> {
     let listener_security = ServerSecurity::load(security)?;
     let config = &file.learner;
-    let run_dir = &config.run_dir;
-    std::fs::create_dir_all(run_dir)
-        .with_context(|| format!("cannot create run directory {}", run_dir.display()))?;
-    let checkpoints = Checkpoints::open(&run_dir.join(CHECKPOINTS), config.checkpoints.keep)?;
+    let run_dir = &RunDir::new(&config.run_dir);
+    std::fs::create_dir_all(run_dir.path())
+        .with_context(|| format!("cannot create run directory {}", run_dir.path().display()))?;
+    let checkpoints = Checkpoints::open(&run_dir.checkpoints(), config.checkpoints.keep)?;
     let resume = match start {
         Start::Fresh => false,
         Start::Resume => true,
@@ -68,10 +61,10 @@ pub fn serve(file: LearnerFile, start: Start, security: &Security) -> anyhow::Re
         if !checkpoints.list()?.is_empty() {
             bail!(
                 "{} already holds a run's checkpoints: continue it with `learner serve --resume {0}`, or set another learner.run_dir",
-                run_dir.display()
+                run_dir.path().display()
             );
         }
-        write_bytes_atomic(&run_dir.join(CONFIG), file.to_toml().as_bytes())
+        write_bytes_atomic(&run_dir.config(), file.to_toml().as_bytes())
             .context("cannot write the run's config.toml")?;
         None
     };
@@ -109,7 +102,7 @@ pub fn serve(file: LearnerFile, start: Start, security: &Security) -> anyhow::Re
                 trainer_shared.stop();
                 let _ = trained_tx.send(result);
             })?;
-        tracing::info!(%addr, run_dir = %run_dir.display(), "learner serving");
+        tracing::info!(%addr, run_dir = %run_dir.path().display(), "learner serving");
         println!("learner listening on {addr}");
         if let Some(listener) = metrics {
             let metrics_addr = listener.local_addr()?;
@@ -157,7 +150,7 @@ pub fn serve(file: LearnerFile, start: Start, security: &Security) -> anyhow::Re
 }
 
 /// The newest checkpoint that reads back, saying which were skipped.
-fn newest_checkpoint(checkpoints: &Checkpoints, run_dir: &Path) -> anyhow::Result<Loaded> {
+fn newest_checkpoint(checkpoints: &Checkpoints, run_dir: &RunDir) -> anyhow::Result<Loaded> {
     let (loaded, skipped) = checkpoints.newest_valid()?;
     for error in &skipped {
         tracing::warn!(%error, "skipping an unusable checkpoint");
@@ -165,7 +158,7 @@ fn newest_checkpoint(checkpoints: &Checkpoints, run_dir: &Path) -> anyhow::Resul
     let loaded = loaded.with_context(|| {
         format!(
             "no usable checkpoint in {} ({} unusable)",
-            run_dir.join(CHECKPOINTS).display(),
+            run_dir.checkpoints().display(),
             skipped.len()
         )
     })?;
@@ -183,9 +176,9 @@ fn newest_checkpoint(checkpoints: &Checkpoints, run_dir: &Path) -> anyhow::Resul
 /// learner cannot wait on its own old counters.
 fn shared_state(
     file: &LearnerFile,
-    run_dir: &Path,
+    run_dir: &RunDir,
     resumed: Option<&Loaded>,
-) -> anyhow::Result<Shared> {
+) -> anyhow::Result<LearnerState> {
     let config = &file.learner;
     let replay = match resumed.and_then(|l| l.part("replay")) {
         Some(bytes) => Replay::decode(config.replay.clone(), bytes)?,
@@ -194,21 +187,21 @@ fn shared_state(
     let mut limiter = Limiter::new(config.limiter.clone());
     limiter.rebase(replay.len());
     let limiter = SharedLimiter::new(limiter, replay.len());
-    let snapshots_dir = run_dir.join(SNAPSHOTS);
+    let snapshots_dir = run_dir.snapshots();
     let snapshots = match resumed {
         Some(l) => Snapshots::restore(&snapshots_dir, config.snapshots.keep, &l.header.snapshots)?,
         None => Snapshots::create(&snapshots_dir, config.snapshots.keep)?,
     };
-    let metrics = Metrics::append(&run_dir.join(METRICS))
-        .with_context(|| format!("cannot open {}", run_dir.join(METRICS).display()))?;
-    let shared = Shared::new(
+    let run_log = RunLog::append(&run_dir.run_log())
+        .with_context(|| format!("cannot open {}", run_dir.run_log().display()))?;
+    let shared = LearnerState::new(
         replay,
         Some(limiter),
         ObservationBounds::for_config(&file.env),
     )
     .with_uniform_steps(config.uniform_steps)
     .with_snapshots(snapshots)
-    .with_metrics(metrics);
+    .with_run_log(run_log);
     Ok(match resumed {
         Some(l) => shared.with_restored(
             l.header.steps_inserted,

@@ -2,7 +2,8 @@
 //! acknowledgements; clients fetch snapshots in chunks; operators read
 //! status. Wire types stop here: the rest of the learner sees domain types.
 
-use crate::shared::{ActorSummary, Shared};
+use crate::learner_state::{Ack, ActorBatch, ActorSummary, LearnerState, LearnerStatus, Refusal};
+use crate::limiter::limiter_state_name;
 use crate::snapshots::{Published, Selector, SnapshotsError};
 use std::pin::Pin;
 use std::sync::Arc;
@@ -18,12 +19,12 @@ pub const CHUNK_BYTES: usize = 1 << 20;
 /// The `Learner` service over the shared state.
 #[derive(Debug, Clone)]
 pub struct LearnerService {
-    shared: Arc<Shared>,
+    shared: Arc<LearnerState>,
 }
 
 impl LearnerService {
     /// The service for `shared`.
-    pub fn new(shared: Arc<Shared>) -> Self {
+    pub fn new(shared: Arc<LearnerState>) -> Self {
         Self { shared }
     }
 }
@@ -87,7 +88,16 @@ impl Learner for LearnerService {
                 let arrived = std::time::Instant::now();
                 let mut bound = actor.clone();
                 let result = tokio::task::spawn_blocking(move || {
-                    let ack = s.accept(&batch, &mut bound, || t.is_closed());
+                    let ack = match batch_from_wire(&batch, s.bounds()) {
+                        Ok(batch) => s
+                            .accept(batch, &mut bound, || t.is_closed())
+                            .map(ack_to_wire)
+                            .map_err(refusal_to_status),
+                        Err(status) => {
+                            s.count_malformed();
+                            Err(status)
+                        }
+                    };
                     (ack, bound)
                 })
                 .await;
@@ -182,7 +192,7 @@ impl Learner for LearnerService {
         &self,
         _request: Request<pb::LearnerStatusRequest>,
     ) -> Result<Response<pb::LearnerStatus>, Status> {
-        Ok(Response::new(status(&self.shared)))
+        Ok(Response::new(status_to_wire(self.shared.status())))
     }
 
     async fn pause_learning(
@@ -192,7 +202,7 @@ impl Learner for LearnerService {
         self.training_only()?;
         self.shared.set_paused(true);
         tracing::info!("learning paused by an operator");
-        Ok(Response::new(status(&self.shared)))
+        Ok(Response::new(status_to_wire(self.shared.status())))
     }
 
     async fn resume_learning(
@@ -202,7 +212,7 @@ impl Learner for LearnerService {
         self.training_only()?;
         self.shared.set_paused(false);
         tracing::info!("learning resumed by an operator");
-        Ok(Response::new(status(&self.shared)))
+        Ok(Response::new(status_to_wire(self.shared.status())))
     }
 
     async fn checkpoint(
@@ -237,42 +247,62 @@ impl LearnerService {
     }
 }
 
+/// An actor's batch from the wire, every field checked.
+fn batch_from_wire(
+    batch: &pb::StepBatch,
+    bounds: &tweezer_gym::ObservationBounds,
+) -> Result<ActorBatch, Status> {
+    let (actor, sequence, steps) =
+        tweezer_proto::step_batch_from_wire(batch, bounds, tweezer_proto::MAX_BATCH_STEPS)?;
+    Ok(ActorBatch {
+        actor,
+        sequence,
+        steps,
+    })
+}
+
+/// An acknowledgement on the wire.
+fn ack_to_wire(ack: Ack) -> pb::StepAck {
+    pb::StepAck {
+        sequence: ack.sequence,
+        snapshot_version: ack.snapshot_version,
+        explore_uniformly: ack.explore_uniformly,
+    }
+}
+
+/// A refused batch's gRPC status.
+fn refusal_to_status(refusal: Refusal) -> Status {
+    match refusal {
+        Refusal::Malformed(reason) => Status::invalid_argument(reason),
+        Refusal::Closed => Status::cancelled(refusal.to_string()),
+        Refusal::ShuttingDown => Status::unavailable(refusal.to_string()),
+    }
+}
+
 /// The learner's status on the wire.
-pub fn status(s: &Shared) -> pb::LearnerStatus {
-    let (len, capacity) = {
-        let replay = s.replay();
-        (replay.len(), replay.capacity())
-    };
-    let (rolling, episodes) = {
-        let episodes = s.episodes();
-        (episodes.rolling(), episodes.finished())
-    };
-    let training = *s.training();
-    let (latest_snapshot, best_snapshot) = s
-        .snapshots()
-        .map_or((0, 0), |s| (s.latest_version(), s.best_version()));
+fn status_to_wire(s: LearnerStatus) -> pb::LearnerStatus {
     pb::LearnerStatus {
-        steps_inserted: s.steps_inserted(),
-        updates: training.updates,
-        buffer_size: len as u64,
-        buffer_capacity: capacity as u64,
-        insert_rate: training.insert_rate,
-        sample_rate: training.sample_rate,
-        limiter_state: s.limiter_state().into(),
-        connected_actors: s.connected(),
-        rolling_return: rolling.mean_return,
-        success_rate: rolling.success_rate,
-        latest_snapshot,
-        best_snapshot,
-        critic_loss: training.critic_loss,
-        actor_loss: training.actor_loss,
-        mean_q: training.mean_q,
-        episodes,
-        malformed_batches: s.malformed(),
-        duplicate_batches: s.duplicates(),
-        explore_uniformly: s.explore_uniformly(),
-        paused: s.paused(),
-        actors: s.actors().into_iter().map(actor_to_wire).collect(),
+        steps_inserted: s.steps_inserted,
+        updates: s.training.updates,
+        buffer_size: s.buffer_size as u64,
+        buffer_capacity: s.buffer_capacity as u64,
+        insert_rate: s.training.insert_rate,
+        sample_rate: s.training.sample_rate,
+        limiter_state: limiter_state_name(s.limiter).into(),
+        connected_actors: s.connected_actors,
+        rolling_return: s.rolling.mean_return,
+        success_rate: s.rolling.success_rate,
+        latest_snapshot: s.latest_snapshot,
+        best_snapshot: s.best_snapshot,
+        critic_loss: s.training.critic_loss,
+        actor_loss: s.training.actor_loss,
+        mean_q: s.training.mean_q,
+        episodes: s.episodes,
+        malformed_batches: s.malformed_batches,
+        duplicate_batches: s.duplicate_batches,
+        explore_uniformly: s.explore_uniformly,
+        paused: s.paused,
+        actors: s.actors.into_iter().map(actor_to_wire).collect(),
     }
 }
 

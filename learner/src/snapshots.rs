@@ -4,13 +4,16 @@
 //! rolling return (the model the paper took to the microscope); it is kept on
 //! disk, also as `best.safetensors`, whatever the pruning of older versions.
 
-use crate::fsio::{link_atomic, write_bytes_atomic};
+use crate::durable_write::{link_atomic, write_bytes_atomic};
 use serde::{Deserialize, Serialize};
 use std::collections::VecDeque;
 use std::io;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use tweezer_nets::{SnapshotInfo, file_sha256, read_info};
+
+/// The best snapshot's second name in the snapshots directory.
+pub const BEST_FILE: &str = "best.safetensors";
 
 /// A snapshot ready to serve.
 #[derive(Debug)]
@@ -180,7 +183,7 @@ impl Snapshots {
             rolling_return.is_some_and(|r| self.best.as_ref().is_none_or(|(_, best)| r >= *best));
         if let Some(r) = rolling_return.filter(|_| is_best) {
             // A second name for the file just written, not a second copy.
-            let best = self.dir.join("best.safetensors");
+            let best = self.dir.join(BEST_FILE);
             if link_atomic(&self.path(version), &best).is_err() {
                 self.write(&best, &published.bytes)?;
             }

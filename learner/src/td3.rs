@@ -3,6 +3,20 @@
 //! target critics, the critic loss; every `policy_delay` updates the actor
 //! loss and the soft target updates. Targets run without autodiff, so their
 //! BatchNorm layers use running statistics.
+//!
+//! Changes from the paper (`docs/spec.md`, "TD3"), each off or at the
+//! paper's value by default:
+//! - `reward_scale`: rewards are scaled before the TD target (the optimal
+//!   policy is unchanged);
+//! - `action_l2`: a penalty on the mean squared action in the actor's loss;
+//! - the actor's loss reads Q1's image features detached: they do not
+//!   depend on π, so the backward pass skips Q1's encoder;
+//! - Adam's epsilon is PyTorch's 1e-8, not Burn's 1e-5.
+//!
+//! The rest of the loop lives elsewhere: exploration noise and uniform
+//! warm-up in the actors (`tweezer-actor`), uniform sampling in the replay
+//! (`replay`), the update-to-data ratio in the rate limiter (`limiter`), and
+//! the training thread that ties them together (`trainer`).
 
 use burn::module::{Module, ModuleMapper, ModuleVisitor, Param};
 use burn::nn::loss::{MseLoss, Reduction};
@@ -10,124 +24,12 @@ use burn::optim::{AdamConfig, GradientsParams, ModuleOptimizer, OptimizerRecord}
 use burn::store::{ModuleRecord, RecordError};
 use burn::tensor::{Bytes, Device, Distribution, Tensor};
 use serde::{Deserialize, Serialize};
-use std::time::Instant;
-use tweezer_gym::ConfigError;
+use tweezer_config::ConfigError;
 use tweezer_nets::{Actor, ActorConfig, Critic, CriticConfig, EncoderConfig};
-
-/// TD3's hyper-parameters; defaults are SPEC §4.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-#[serde(default, deny_unknown_fields)]
-pub struct Td3Config {
-    /// Discount factor γ (the paper's best: 0.86).
-    pub gamma: f64,
-    /// Soft target update rate τ.
-    pub tau: f64,
-    /// Standard deviation of the target policy smoothing noise.
-    pub policy_noise: f64,
-    /// The smoothing noise is clipped to ±this.
-    pub noise_clip: f64,
-    /// Critic updates per actor update.
-    pub policy_delay: u64,
-    /// Adam learning rate of the actor.
-    pub actor_lr: f64,
-    /// Adam learning rate of the critics.
-    pub critic_lr: f64,
-    /// Rewards are multiplied by this before they enter the TD target (the
-    /// optimal policy is unchanged; the critics' outputs shrink with it).
-    pub reward_scale: f64,
-    /// Adam's epsilon. PyTorch's 1e-8, not Burn's default 1e-5: an actor
-    /// whose tanh saturates gets gradients far below 1e-5, and Burn's
-    /// epsilon then all but stops it from ever leaving the corner.
-    pub adam_epsilon: f64,
-    /// Weight of the mean squared action in the actor's loss (as in
-    /// OpenAI's HER baseline); keeps the tanh out of saturation while the
-    /// critics are still wrong (0: the paper).
-    pub action_l2: f64,
-}
-
-impl Default for Td3Config {
-    fn default() -> Self {
-        Self {
-            gamma: 0.86,
-            tau: 0.005,
-            policy_noise: 0.2,
-            noise_clip: 0.5,
-            policy_delay: 2,
-            actor_lr: 3e-4,
-            critic_lr: 3e-4,
-            reward_scale: 1.0,
-            adam_epsilon: 1e-8,
-            action_l2: 0.0,
-        }
-    }
-}
-
-impl Td3Config {
-    /// Checks every field; the error names the first one out of range.
-    pub fn validate(&self) -> Result<(), ConfigError> {
-        let unit = [("td3.gamma", self.gamma), ("td3.tau", self.tau)];
-        for (field, value) in unit {
-            if !(0.0..=1.0).contains(&value) {
-                return Err(invalid(field, format!("must be in [0, 1], got {value}")));
-            }
-        }
-        let non_negative = [
-            ("td3.policy_noise", self.policy_noise),
-            ("td3.noise_clip", self.noise_clip),
-            ("td3.action_l2", self.action_l2),
-        ];
-        for (field, value) in non_negative {
-            if !(value.is_finite() && value >= 0.0) {
-                return Err(invalid(
-                    field,
-                    format!("must be finite and >= 0, got {value}"),
-                ));
-            }
-        }
-        for (field, value) in [
-            ("td3.actor_lr", self.actor_lr),
-            ("td3.critic_lr", self.critic_lr),
-            ("td3.reward_scale", self.reward_scale),
-            ("td3.adam_epsilon", self.adam_epsilon),
-        ] {
-            if !(value.is_finite() && value > 0.0) {
-                return Err(invalid(
-                    field,
-                    format!("must be finite and > 0, got {value}"),
-                ));
-            }
-        }
-        if self.policy_delay == 0 {
-            return Err(invalid("td3.policy_delay", "must be at least 1"));
-        }
-        Ok(())
-    }
-}
-
-/// Adam with the configured epsilon.
-fn adam(config: &Td3Config) -> ModuleOptimizer {
-    AdamConfig::new()
-        .with_epsilon(config.adam_epsilon as f32)
-        .init()
-}
-
-fn invalid(field: &str, reason: impl Into<String>) -> ConfigError {
-    ConfigError::Invalid {
-        field: field.into(),
-        reason: reason.into(),
-    }
-}
-
-/// The two critics, trained together by one optimiser.
-#[derive(Module, Debug)]
-pub struct TwinCritic {
-    q1: Critic,
-    q2: Critic,
-}
 
 /// A batch of transitions as tensors, on the training device.
 #[derive(Clone, Debug)]
-pub struct Batch {
+pub struct Minibatch {
     /// `[batch, 1, height, width]` binary images.
     pub image: Tensor<4>,
     /// `[batch, 2]` target vectors.
@@ -144,19 +46,31 @@ pub struct Batch {
     pub next_vector: Tensor<2>,
 }
 
-/// What one update measured.
+/// What one update computed.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub struct UpdateStats {
-    /// Wall time of the critic step (targets, losses, backward, Adam), ms.
-    pub critic_ms: f64,
-    /// Wall time of the actor step and soft updates, ms (0 when skipped).
-    pub actor_ms: f64,
     /// Mean squared TD error, summed over the two critics.
     pub critic_loss: f64,
     /// −Q1(s, π(s)), when the actor was updated this time.
     pub actor_loss: Option<f64>,
     /// Mean Q1 of the batch's actions.
     pub mean_q: f64,
+}
+
+/// What a critic step computed.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct CriticStats {
+    /// Mean squared TD error, summed over the two critics.
+    pub loss: f64,
+    /// Mean Q1 of the batch's actions.
+    pub mean_q: f64,
+}
+
+/// The two critics, trained together by one optimiser.
+#[derive(Module, Debug)]
+pub struct TwinCritic {
+    q1: Critic,
+    q2: Critic,
 }
 
 /// The learner's networks, their targets and optimisers.
@@ -172,6 +86,114 @@ pub struct Td3 {
 }
 
 impl Td3 {
+    /// One TD3 update on `batch`: a critic step, then the actor step when
+    /// it is due.
+    pub fn update(&mut self, batch: Minibatch) -> UpdateStats {
+        let critic = self.critic_step(&batch);
+        let actor_loss = self.actor_due().then(|| self.actor_step(batch));
+        UpdateStats {
+            critic_loss: critic.loss,
+            actor_loss,
+            mean_q: critic.mean_q,
+        }
+    }
+
+    /// The critics' step: targets, the critic loss, backward, Adam.
+    pub fn critic_step(&mut self, batch: &Minibatch) -> CriticStats {
+        let c = &self.config;
+        let Minibatch {
+            image,
+            vector,
+            action,
+            reward,
+            terminated,
+            next_image,
+            next_vector,
+        } = batch.clone();
+
+        // Target policy smoothing: a' = clip(π'(s') + clip(ε, -c, c), -1, 1).
+        let target_device = next_image.device();
+        let (next_image, next_vector) = (next_image.valid(), next_vector.valid());
+        let next_action = self
+            .actor_target
+            .forward(next_image.clone(), next_vector.clone());
+        let noise = Tensor::<2>::random(
+            next_action.shape(),
+            Distribution::Normal(0.0, c.policy_noise),
+            &next_action.device(),
+        );
+        let next_action = smoothed_target_action(next_action, noise, c.noise_clip);
+
+        // Clipped double Q: y = r + γ (1 - terminated) min(Q1'(s', a'), Q2'(s',
+        // a')).
+        let q1_next = self.critics_target.q1.forward(
+            next_image.clone(),
+            next_vector.clone(),
+            next_action.clone(),
+        );
+        let q2_next = self
+            .critics_target
+            .q2
+            .forward(next_image, next_vector, next_action);
+        let y = td_target(
+            reward.valid() * c.reward_scale,
+            terminated.valid(),
+            q1_next,
+            q2_next,
+            c.gamma,
+        );
+        let y = Tensor::from_inner(y).to_device(&target_device);
+
+        // Critic loss: MSE(Q1(s, a), y) + MSE(Q2(s, a), y).
+        let q1 = self
+            .critics
+            .q1
+            .forward(image.clone(), vector.clone(), action.clone());
+        let q2 = self.critics.q2.forward(image, vector, action);
+        let mse = MseLoss::new();
+        let critic_loss = mse.forward(q1.clone(), y.clone(), Reduction::Mean)
+            + mse.forward(q2, y, Reduction::Mean);
+        let stats = CriticStats {
+            loss: scalar(&critic_loss),
+            mean_q: scalar(&q1.mean()),
+        };
+        let grads = GradientsParams::from_grads(critic_loss.backward(), &self.critics);
+        self.critics = self
+            .critic_optim
+            .step(c.critic_lr, self.critics.clone(), grads);
+        self.updates += 1;
+        stats
+    }
+
+    /// Whether the delayed actor step is due after the critic steps so far
+    /// (every `policy_delay`-th).
+    pub fn actor_due(&self) -> bool {
+        self.updates.is_multiple_of(self.config.policy_delay)
+    }
+
+    /// The delayed policy step and the soft target updates; returns the
+    /// actor's loss.
+    pub fn actor_step(&mut self, batch: Minibatch) -> f64 {
+        let c = &self.config;
+        let Minibatch { image, vector, .. } = batch;
+        // Actor loss: −Q1(s, π(s)), plus the optional action penalty.
+        // Q1's image features do not depend on π: computed detached, the
+        // backward pass skips Q1's encoder (its gradients would be thrown
+        // away).
+        let pi = self.actor.forward(image.clone(), vector.clone());
+        let penalty = pi.clone().powi_scalar(2).mean() * c.action_l2;
+        let features = self.critics.q1.encode(image).detach();
+        let q = self.critics.q1.forward_features(features, vector, pi);
+        let loss = q.mean().neg() + penalty;
+        let actor_loss = scalar(&loss);
+        let grads = GradientsParams::from_grads(loss.backward(), &self.actor);
+        self.actor = self.actor_optim.step(c.actor_lr, self.actor.clone(), grads);
+
+        self.actor_target = soft_update(&self.actor, &self.actor_target, c.tau);
+        self.critics_target = soft_update(&self.critics, &self.critics_target, c.tau);
+        actor_loss
+    }
+
     /// Fresh networks for `height` x `width` images on `device` (an
     /// autodiff device), once `config` is checked.
     pub fn new(
@@ -207,160 +229,6 @@ impl Td3 {
     /// Updates made so far.
     pub fn updates(&self) -> u64 {
         self.updates
-    }
-
-    /// The networks, targets and optimiser states as named burnpack byte
-    /// buffers, for a checkpoint.
-    pub fn save_state(&self) -> Result<Vec<(&'static str, Vec<u8>)>, RecordError> {
-        let module = |record: ModuleRecord| record.into_bytes().map(|b| b.to_vec());
-        Ok(vec![
-            ("actor", module(self.actor.clone().into_record())?),
-            ("critics", module(self.critics.clone().into_record())?),
-            (
-                "actor_target",
-                module(self.actor_target.clone().into_record())?,
-            ),
-            (
-                "critics_target",
-                module(self.critics_target.clone().into_record())?,
-            ),
-            ("actor_optim", self.actor_optim.into_bytes()?.to_vec()),
-            ("critic_optim", self.critic_optim.into_bytes()?.to_vec()),
-        ])
-    }
-
-    /// Restores what [`Self::save_state`] saved, `updates` updates in;
-    /// `part` finds a buffer by name. The networks must have the shapes the
-    /// state was saved with.
-    pub fn load_state<'a>(
-        &mut self,
-        part: impl Fn(&str) -> Option<&'a [u8]>,
-        updates: u64,
-    ) -> Result<(), RecordError> {
-        let bytes = |name: &str| {
-            part(name)
-                .map(|b| Bytes::from_bytes_vec(b.to_vec()))
-                .ok_or_else(|| RecordError::Io(format!("part `{name}` is missing")))
-        };
-        let module = |name: &str| ModuleRecord::from_bytes(bytes(name)?);
-        self.actor = self.actor.clone().try_load_record(module("actor")?)?;
-        self.critics = self.critics.clone().try_load_record(module("critics")?)?;
-        self.actor_target = self
-            .actor_target
-            .clone()
-            .try_load_record(module("actor_target")?)?;
-        self.critics_target = self
-            .critics_target
-            .clone()
-            .try_load_record(module("critics_target")?)?;
-        let optimiser = |name: &str| OptimizerRecord::from_bytes(bytes(name)?);
-        self.actor_optim = std::mem::replace(&mut self.actor_optim, adam(&self.config))
-            .load_record(optimiser("actor_optim")?);
-        self.critic_optim = std::mem::replace(&mut self.critic_optim, adam(&self.config))
-            .load_record(optimiser("critic_optim")?);
-        self.updates = updates;
-        Ok(())
-    }
-
-    /// One TD3 update on `batch`.
-    pub fn update(&mut self, batch: Batch) -> UpdateStats {
-        let c = &self.config;
-        let started = Instant::now();
-        let Batch {
-            image,
-            vector,
-            action,
-            reward,
-            terminated,
-            next_image,
-            next_vector,
-        } = batch;
-
-        // Target policy smoothing: a' = clip(π'(s') + clip(ε, -c, c), -1, 1).
-        let target_device = next_image.device();
-        let (next_image, next_vector) = (next_image.valid(), next_vector.valid());
-        let next_action = self
-            .actor_target
-            .forward(next_image.clone(), next_vector.clone());
-        let noise = Tensor::<2>::random(
-            next_action.shape(),
-            Distribution::Normal(0.0, c.policy_noise),
-            &next_action.device(),
-        );
-        let next_action = smoothed_target_action(next_action, noise, c.noise_clip);
-
-        // Clipped double Q: y = r + γ (1 - terminated) min(Q1'(s', a'), Q2'(s', a')).
-        let q1_next = self.critics_target.q1.forward(
-            next_image.clone(),
-            next_vector.clone(),
-            next_action.clone(),
-        );
-        let q2_next = self
-            .critics_target
-            .q2
-            .forward(next_image, next_vector, next_action);
-        let y = td_target(
-            reward.valid() * c.reward_scale,
-            terminated.valid(),
-            q1_next,
-            q2_next,
-            c.gamma,
-        );
-        let y = Tensor::from_inner(y).to_device(&target_device);
-
-        // Critic loss: MSE(Q1(s, a), y) + MSE(Q2(s, a), y).
-        let q1 = self
-            .critics
-            .q1
-            .forward(image.clone(), vector.clone(), action.clone());
-        let q2 = self
-            .critics
-            .q2
-            .forward(image.clone(), vector.clone(), action);
-        let mse = MseLoss::new();
-        let critic_loss = mse.forward(q1.clone(), y.clone(), Reduction::Mean)
-            + mse.forward(q2, y, Reduction::Mean);
-        let stats_critic = scalar(&critic_loss);
-        let mean_q = scalar(&q1.mean());
-        let grads = GradientsParams::from_grads(critic_loss.backward(), &self.critics);
-        self.critics = self
-            .critic_optim
-            .step(c.critic_lr, self.critics.clone(), grads);
-        self.updates += 1;
-        let critic_ms = started.elapsed().as_secs_f64() * 1e3;
-
-        // Delayed policy update and soft target updates.
-        let started = Instant::now();
-        let mut actor_loss = None;
-        if self.updates.is_multiple_of(c.policy_delay) {
-            // Actor loss: −Q1(s, π(s)), plus the optional action penalty.
-            // Q1's image features do not depend on π: computed detached,
-            // the backward pass skips Q1's encoder (its gradients would be
-            // thrown away).
-            let pi = self.actor.forward(image.clone(), vector.clone());
-            let penalty = pi.clone().powi_scalar(2).mean() * c.action_l2;
-            let features = self.critics.q1.encode(image).detach();
-            let q = self.critics.q1.forward_features(features, vector, pi);
-            let loss = q.mean().neg() + penalty;
-            actor_loss = Some(scalar(&loss));
-            let grads = GradientsParams::from_grads(loss.backward(), &self.actor);
-            self.actor = self.actor_optim.step(c.actor_lr, self.actor.clone(), grads);
-
-            self.actor_target = soft_update(&self.actor, &self.actor_target, c.tau);
-            self.critics_target = soft_update(&self.critics, &self.critics_target, c.tau);
-        }
-        let actor_ms = if actor_loss.is_some() {
-            started.elapsed().as_secs_f64() * 1e3
-        } else {
-            0.0
-        };
-        UpdateStats {
-            critic_ms,
-            actor_ms,
-            critic_loss: stats_critic,
-            actor_loss,
-            mean_q,
-        }
     }
 }
 
@@ -423,5 +291,163 @@ impl ModuleMapper for Blend {
             .reshape(online.shape());
         let blended = online * self.tau + old * (1.0 - self.tau);
         Param::from_mapped_value(id, blended, mapper)
+    }
+}
+
+/// TD3's hyper-parameters; defaults are `docs/spec.md` §4.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct Td3Config {
+    /// Discount factor γ (the paper's best: 0.86).
+    pub gamma: f64,
+    /// Soft target update rate τ.
+    pub tau: f64,
+    /// Standard deviation of the target policy smoothing noise.
+    pub policy_noise: f64,
+    /// The smoothing noise is clipped to ±this.
+    pub noise_clip: f64,
+    /// Critic updates per actor update.
+    pub policy_delay: u64,
+    /// Adam learning rate of the actor.
+    pub actor_lr: f64,
+    /// Adam learning rate of the critics.
+    pub critic_lr: f64,
+    /// Rewards are multiplied by this before they enter the TD target (the
+    /// optimal policy is unchanged; the critics' outputs shrink with it).
+    pub reward_scale: f64,
+    /// Adam's epsilon. PyTorch's 1e-8, not Burn's default 1e-5: an actor
+    /// whose tanh saturates gets gradients far below 1e-5, and Burn's
+    /// epsilon then all but stops it from ever leaving the corner.
+    pub adam_epsilon: f64,
+    /// Weight of the mean squared action in the actor's loss (as in
+    /// OpenAI's HER baseline); keeps the tanh out of saturation while the
+    /// critics are still wrong (0: the paper).
+    pub action_l2: f64,
+}
+
+impl Default for Td3Config {
+    fn default() -> Self {
+        Self {
+            gamma: 0.86,
+            tau: 0.005,
+            policy_noise: 0.2,
+            noise_clip: 0.5,
+            policy_delay: 2,
+            actor_lr: 3e-4,
+            critic_lr: 3e-4,
+            reward_scale: 1.0,
+            adam_epsilon: 1e-8,
+            action_l2: 0.0,
+        }
+    }
+}
+
+impl Td3Config {
+    /// Checks every field; the error names the first one out of range.
+    pub fn validate(&self) -> Result<(), ConfigError> {
+        let unit = [("td3.gamma", self.gamma), ("td3.tau", self.tau)];
+        for (field, value) in unit {
+            if !(0.0..=1.0).contains(&value) {
+                return Err(ConfigError::invalid(
+                    field,
+                    format!("must be in [0, 1], got {value}"),
+                ));
+            }
+        }
+        let non_negative = [
+            ("td3.policy_noise", self.policy_noise),
+            ("td3.noise_clip", self.noise_clip),
+            ("td3.action_l2", self.action_l2),
+        ];
+        for (field, value) in non_negative {
+            if !(value.is_finite() && value >= 0.0) {
+                return Err(ConfigError::invalid(
+                    field,
+                    format!("must be finite and >= 0, got {value}"),
+                ));
+            }
+        }
+        for (field, value) in [
+            ("td3.actor_lr", self.actor_lr),
+            ("td3.critic_lr", self.critic_lr),
+            ("td3.reward_scale", self.reward_scale),
+            ("td3.adam_epsilon", self.adam_epsilon),
+        ] {
+            if !(value.is_finite() && value > 0.0) {
+                return Err(ConfigError::invalid(
+                    field,
+                    format!("must be finite and > 0, got {value}"),
+                ));
+            }
+        }
+        if self.policy_delay == 0 {
+            return Err(ConfigError::invalid(
+                "td3.policy_delay",
+                "must be at least 1",
+            ));
+        }
+        Ok(())
+    }
+}
+
+/// Adam with the configured epsilon.
+fn adam(config: &Td3Config) -> ModuleOptimizer {
+    AdamConfig::new()
+        .with_epsilon(config.adam_epsilon as f32)
+        .init()
+}
+
+impl Td3 {
+    /// The networks, targets and optimiser states as named burnpack byte
+    /// buffers, for a checkpoint.
+    pub fn save_state(&self) -> Result<Vec<(&'static str, Vec<u8>)>, RecordError> {
+        let module = |record: ModuleRecord| record.into_bytes().map(|b| b.to_vec());
+        Ok(vec![
+            ("actor", module(self.actor.clone().into_record())?),
+            ("critics", module(self.critics.clone().into_record())?),
+            (
+                "actor_target",
+                module(self.actor_target.clone().into_record())?,
+            ),
+            (
+                "critics_target",
+                module(self.critics_target.clone().into_record())?,
+            ),
+            ("actor_optim", self.actor_optim.into_bytes()?.to_vec()),
+            ("critic_optim", self.critic_optim.into_bytes()?.to_vec()),
+        ])
+    }
+
+    /// Restores what [`Self::save_state`] saved, `updates` updates in;
+    /// `part` finds a buffer by name. The networks must have the shapes the
+    /// state was saved with.
+    pub fn load_state<'a>(
+        &mut self,
+        part: impl Fn(&str) -> Option<&'a [u8]>,
+        updates: u64,
+    ) -> Result<(), RecordError> {
+        let bytes = |name: &str| {
+            part(name)
+                .map(|b| Bytes::from_bytes_vec(b.to_vec()))
+                .ok_or_else(|| RecordError::Io(format!("part `{name}` is missing")))
+        };
+        let module = |name: &str| ModuleRecord::from_bytes(bytes(name)?);
+        self.actor = self.actor.clone().try_load_record(module("actor")?)?;
+        self.critics = self.critics.clone().try_load_record(module("critics")?)?;
+        self.actor_target = self
+            .actor_target
+            .clone()
+            .try_load_record(module("actor_target")?)?;
+        self.critics_target = self
+            .critics_target
+            .clone()
+            .try_load_record(module("critics_target")?)?;
+        let optimiser = |name: &str| OptimizerRecord::from_bytes(bytes(name)?);
+        self.actor_optim = std::mem::replace(&mut self.actor_optim, adam(&self.config))
+            .load_record(optimiser("actor_optim")?);
+        self.critic_optim = std::mem::replace(&mut self.critic_optim, adam(&self.config))
+            .load_record(optimiser("critic_optim")?);
+        self.updates = updates;
+        Ok(())
     }
 }

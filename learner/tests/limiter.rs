@@ -135,11 +135,11 @@ fn run_with_producers(producers: u64) {
 }
 
 #[test]
-fn one_producer() {
+fn one_producer_and_the_learner_keep_the_ratio_within_the_slack() {
     run_with_producers(1);
 }
 
 #[test]
-fn eight_producers() {
+fn eight_producers_and_the_learner_keep_the_ratio_within_the_slack() {
     run_with_producers(8);
 }

@@ -136,7 +136,7 @@ fn fifo_removes_the_oldest_and_wraps_around() {
 }
 
 #[test]
-fn sampling_is_uniform() {
+fn every_stored_transition_is_sampled_equally_often() {
     let mut replay = small(40);
     for t in 0..41u32 {
         // Episodes of 5 steps, so final-observation records are interleaved.

@@ -5,18 +5,18 @@ use std::sync::Arc;
 use tokio_stream::wrappers::ReceiverStream;
 use tonic::Code;
 use tweezer_gym::{EnvConfig, ObservationBounds};
+use tweezer_learner::learner_state::LearnerState;
 use tweezer_learner::loopback::{batches, serve};
 use tweezer_learner::replay::{Replay, ReplayConfig};
-use tweezer_learner::shared::Shared;
 use tweezer_proto::pb;
 use tweezer_proto::pb::learner_client::LearnerClient;
 
-fn ingest() -> Arc<Shared> {
+fn ingest() -> Arc<LearnerState> {
     let replay = Replay::new(ReplayConfig {
         capacity: 100_000,
         ..ReplayConfig::default()
     });
-    Arc::new(Shared::new(
+    Arc::new(LearnerState::new(
         replay,
         None,
         ObservationBounds::for_config(&EnvConfig::default()),
@@ -27,7 +27,7 @@ type Client = LearnerClient<tonic::transport::Channel>;
 type Sender = tokio::sync::mpsc::Sender<pb::StepBatch>;
 
 /// A learner on loopback and a client connected to it.
-async fn connected() -> (Arc<Shared>, Client) {
+async fn connected() -> (Arc<LearnerState>, Client) {
     let ingest = ingest();
     let addr = serve(ingest.clone()).await.unwrap();
     let client = LearnerClient::connect(format!("http://{addr}"))
@@ -194,7 +194,7 @@ async fn a_producer_held_by_back_pressure_is_released_when_its_actor_goes() {
         slack: 5.0,
         ..LimiterConfig::default()
     });
-    let shared = Arc::new(Shared::new(
+    let shared = Arc::new(LearnerState::new(
         Replay::new(ReplayConfig::default()),
         Some(SharedLimiter::new(limiter, 0)),
         ObservationBounds::for_config(&EnvConfig::default()),

@@ -3,7 +3,9 @@
 use burn::module::Module;
 use burn::nn::{Linear, LinearConfig};
 use burn::tensor::{Device, Distribution, Tensor, TensorData};
-use tweezer_learner::td3::{Batch, Td3, Td3Config, smoothed_target_action, soft_update, td_target};
+use tweezer_learner::td3::{
+    Minibatch, Td3, Td3Config, smoothed_target_action, soft_update, td_target,
+};
 
 fn values<const D: usize>(t: Tensor<D>) -> Vec<f32> {
     t.into_data().try_to_vec::<f32>().unwrap()
@@ -70,10 +72,10 @@ fn soft_update_blends_every_parameter() {
     close(&w(&soft_update(&online, &target, 0.0)), &w(&target));
 }
 
-fn batch(n: usize, device: &Device) -> Batch {
+fn batch(n: usize, device: &Device) -> Minibatch {
     let image = || Tensor::<4>::random([n, 1, 64, 80], Distribution::Bernoulli(0.1), device);
     let pair = || Tensor::<2>::random([n, 2], Distribution::Uniform(-1.0, 1.0), device);
-    Batch {
+    Minibatch {
         image: image(),
         vector: pair(),
         action: pair(),
@@ -104,32 +106,6 @@ fn the_actor_updates_every_second_step_and_losses_are_finite() {
     assert!(s2.actor_loss.is_some_and(f64::is_finite));
     assert_ne!(act(&td3), a0, "the second update trains the actor");
     assert_eq!(td3.updates(), 2);
-}
-
-#[test]
-fn the_bench_measures_a_small_configuration() {
-    let env = tweezer_gym::EnvConfig {
-        image: tweezer_gym::ImageConfig {
-            width: 80,
-            height: 64,
-        },
-        ..tweezer_gym::EnvConfig::default()
-    };
-    let report = tweezer_learner::bench::run(&env, 32, 2_000, 2, &Device::flex()).unwrap();
-    assert_eq!(report.updates_timed, 2);
-    for v in [
-        report.update_ms_mean,
-        report.critic_step_ms,
-        report.actor_step_ms,
-        report.actor_infer_ms_batch1,
-        report.actor_infer_ms_batch16,
-    ] {
-        assert!(v > 0.0 && v.is_finite(), "{report:?}");
-    }
-    assert!(
-        report.replay_bytes_per_transition > 40.0 && report.replay_bytes_per_transition < 500.0
-    );
-    assert!(report.ingest_transitions_per_sec > 0.0);
 }
 
 #[test]

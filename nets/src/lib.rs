@@ -1,11 +1,11 @@
-//! The paper's actor and critic networks (SPEC §3) in Burn, shared by the
-//! learner, the actors and the hardware agent.
+//! The paper's actor and critic networks (`docs/spec.md` §3) in Burn, shared by
+//! the learner, the actors and the hardware agent.
 //!
 //! Both take the binary image observation `[batch, 1, height, width]` and the
-//! target vector `[batch, 2]`; the critic also takes the action
-//! `[batch, 2]`. Any resolution works: the flatten size follows. On a device
-//! without autodiff (actors, the hardware agent, TD3 targets) BatchNorm uses
-//! its running statistics.
+//! target vector `[batch, 2]`; the critic also takes the action `[batch, 2]`.
+//! Any resolution works: the flatten size follows. On a device without autodiff
+//! (actors, the hardware agent, TD3 targets) BatchNorm uses its running
+//! statistics.
 
 mod actor;
 mod critic;

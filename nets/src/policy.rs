@@ -6,7 +6,8 @@ use crate::images::render_images;
 use crate::snapshot::{SnapshotError, SnapshotInfo, decode};
 use burn::tensor::{Device, Tensor, TensorData};
 use std::path::Path;
-use tweezer_gym::{Action, ConfigError, EnvConfig, Observation, Policy, Renderer};
+use tweezer_config::ConfigError;
+use tweezer_gym::{Action, EnvConfig, Observation, Policy, Renderer};
 
 /// A snapshot file that cannot become a policy.
 #[derive(Debug, thiserror::Error)]

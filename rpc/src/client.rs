@@ -12,6 +12,8 @@ use tonic::service::interceptor::InterceptedService;
 use tonic::transport::{Certificate, Channel, ClientTlsConfig, Endpoint, Identity};
 use tonic_health::pb::HealthCheckRequest;
 use tonic_health::pb::health_client::HealthClient;
+use tweezer_proto::pb;
+use tweezer_proto::pb::learner_client::LearnerClient;
 
 /// A channel that sends the client's token with every call.
 pub type AuthChannel = InterceptedService<Channel, Bearer>;
@@ -306,4 +308,14 @@ async fn health(
         })
         .await
         .map(tonic::Response::into_inner)
+}
+
+/// The status of the learner `client` talks to.
+pub async fn learner_status(
+    client: &mut LearnerClient<AuthChannel>,
+) -> Result<pb::LearnerStatus, tonic::Status> {
+    Ok(client
+        .get_status(pb::LearnerStatusRequest {})
+        .await?
+        .into_inner())
 }

@@ -1,6 +1,6 @@
-//! A process's Prometheus metrics: histograms fed as things happen, and
-//! figures read from the process's status at each scrape, exposed as
-//! OpenMetrics text at `GET /metrics` (see [`crate::ServerSecurity::serve_metrics`]).
+//! A process's Prometheus metrics: histograms fed as things happen, and samples
+//! read from the process's status at each scrape, exposed as OpenMetrics text
+//! at `GET /metrics` (see [`crate::ServerSecurity::serve_metrics`]).
 
 use prometheus_client::collector::Collector;
 use prometheus_client::encoding::{DescriptorEncoder, EncodeMetric};
@@ -9,33 +9,33 @@ use prometheus_client::metrics::gauge::ConstGauge;
 pub use prometheus_client::metrics::histogram::{Histogram, exponential_buckets};
 use prometheus_client::registry::Registry;
 
-/// One figure of a process's status, read at scrape time.
+/// One sample of a process's status, read at scrape time.
 #[derive(Clone, Debug, PartialEq)]
-pub struct Figure {
+pub struct MetricSample {
     /// Its name after the process's prefix (a counter's without `_total`).
     pub name: &'static str,
     /// What it measures.
     pub help: &'static str,
     /// Its value.
-    pub value: FigureValue,
+    pub value: SampleValue,
 }
 
-/// A figure's kind and value.
+/// A sample's kind and value.
 #[derive(Clone, Copy, Debug, PartialEq)]
-pub enum FigureValue {
+pub enum SampleValue {
     /// Only ever grows (until the process restarts).
     Counter(u64),
     /// Goes up and down.
     Gauge(f64),
 }
 
-impl Figure {
+impl MetricSample {
     /// A counter.
     pub fn counter(name: &'static str, help: &'static str, value: u64) -> Self {
         Self {
             name,
             help,
-            value: FigureValue::Counter(value),
+            value: SampleValue::Counter(value),
         }
     }
 
@@ -44,39 +44,39 @@ impl Figure {
         Self {
             name,
             help,
-            value: FigureValue::Gauge(value),
+            value: SampleValue::Gauge(value),
         }
     }
 }
 
-/// Reads the figures at each scrape.
-struct Figures(Box<dyn Fn() -> Vec<Figure> + Send + Sync>);
+/// Reads the samples at each scrape.
+struct Samples(Box<dyn Fn() -> Vec<MetricSample> + Send + Sync>);
 
-impl std::fmt::Debug for Figures {
+impl std::fmt::Debug for Samples {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.write_str("Figures")
+        f.write_str("Samples")
     }
 }
 
-impl Collector for Figures {
+impl Collector for Samples {
     fn encode(&self, mut encoder: DescriptorEncoder) -> Result<(), std::fmt::Error> {
-        for figure in (self.0)() {
-            match figure.value {
-                FigureValue::Counter(v) => {
+        for sample in (self.0)() {
+            match sample.value {
+                SampleValue::Counter(v) => {
                     let counter = ConstCounter::new(v);
                     let metric = encoder.encode_descriptor(
-                        figure.name,
-                        figure.help,
+                        sample.name,
+                        sample.help,
                         None,
                         counter.metric_type(),
                     )?;
                     counter.encode(metric)?;
                 }
-                FigureValue::Gauge(v) => {
+                SampleValue::Gauge(v) => {
                     let gauge = ConstGauge::new(v);
                     let metric = encoder.encode_descriptor(
-                        figure.name,
-                        figure.help,
+                        sample.name,
+                        sample.help,
                         None,
                         gauge.metric_type(),
                     )?;
@@ -108,10 +108,10 @@ impl Prometheus {
         self.registry.register(name, help, histogram.clone());
     }
 
-    /// Exposes the figures `read` returns, called at each scrape.
-    pub fn figures(&mut self, read: impl Fn() -> Vec<Figure> + Send + Sync + 'static) {
+    /// Exposes the samples `read` returns, called at each scrape.
+    pub fn samples(&mut self, read: impl Fn() -> Vec<MetricSample> + Send + Sync + 'static) {
         self.registry
-            .register_collector(Box::new(Figures(Box::new(read))));
+            .register_collector(Box::new(Samples(Box::new(read))));
     }
 
     /// The metrics as OpenMetrics text.
@@ -134,14 +134,14 @@ mod tests {
     use super::*;
 
     #[test]
-    fn figures_and_histograms_encode_as_openmetrics() {
+    fn samples_and_histograms_encode_as_openmetrics() {
         let mut metrics = Prometheus::new("tweezer_test");
         let histogram = Histogram::new(latency_buckets());
         metrics.histogram("update_seconds", "Time per update.", &histogram);
-        metrics.figures(|| {
+        metrics.samples(|| {
             vec![
-                Figure::counter("steps_inserted", "Steps stored.", 42),
-                Figure::gauge("buffer_fill", "Fraction full.", 0.5),
+                MetricSample::counter("steps_inserted", "Steps stored.", 42),
+                MetricSample::gauge("buffer_fill", "Fraction full.", 0.5),
             ]
         });
         histogram.observe(0.003);

@@ -70,7 +70,7 @@ pub enum SecurityError {
     Token(#[from] TokenError),
     /// No security file was given.
     #[error(
-        "no security file: pass --security PATH or set {SECURITY_ENV} (see the README's Security section; `tweezer cert` and `tweezer token` make one)"
+        "no security file: pass --security PATH or set {SECURITY_ENV} (see docs/operations.md, Security; `tweezer cert` and `tweezer token` make one)"
     )]
     Missing,
 }

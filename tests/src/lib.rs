@@ -314,18 +314,22 @@ pub fn stop(mut child: Child) -> (ExitStatus, String) {
     )
 }
 
+/// The status of the learner at `addr`, asked with the security file
+/// `name`'s token.
+pub async fn learner_status(addr: &str, name: &str) -> Result<pb::LearnerStatus, String> {
+    let channel = credentials()
+        .client(name)
+        .connect(addr, Duration::from_secs(10))
+        .await
+        .map_err(|e| e.to_string())?;
+    tweezer_rpc::learner_status(&mut LearnerClient::new(channel))
+        .await
+        .map_err(|e| e.to_string())
+}
+
 /// The learner's status, or None while it cannot be reached.
 pub fn status(runtime: &tokio::runtime::Runtime, addr: &str) -> Option<pb::LearnerStatus> {
-    runtime.block_on(async {
-        let channel = credentials()
-            .client("read")
-            .connect(addr, Duration::from_secs(10))
-            .await
-            .ok()?;
-        let mut client = LearnerClient::new(channel);
-        let status = client.get_status(pb::LearnerStatusRequest {}).await.ok()?;
-        Some(status.into_inner())
-    })
+    runtime.block_on(learner_status(addr, "read")).ok()
 }
 
 /// A loopback port free at the time of the call.

@@ -210,8 +210,10 @@ async fn the_daemon_runs_episodes_stops_them_and_refuses_what_it_must() {
         .await
         .unwrap()
         .into_inner();
+    // The reply does not wait for the episode, which would run on for
+    // seconds; a second of slack leaves a loaded 2-core machine room.
     let latency = asked.elapsed();
-    assert!(latency < Duration::from_millis(100), "{latency:?}");
+    assert!(latency < Duration::from_secs(1), "{latency:?}");
     assert_eq!(state(&status), pb::AgentState::EmergencyStopped);
     tokio::time::sleep(Duration::from_millis(300)).await;
     let stopped = client

@@ -12,8 +12,8 @@ use tweezer_proto::pb::learner_client::LearnerClient;
 use tweezer_rpc::access::{Access, RULES, access};
 use tweezer_rpc::{AuthChannel, ClientSecurity, Role, Security};
 use tweezer_system_tests::{
-    Running, TINY_ENV, connect, credentials, run, start_agent, start_service, stderr_of_failure,
-    stdout_of, write,
+    Running, TINY_ENV, connect, credentials, learner_status, run, start_agent, start_service,
+    stderr_of_failure, stdout_of, write,
 };
 
 /// Who calls: no token, a token no service lists, or one of each role.
@@ -273,18 +273,7 @@ async fn every_hardware_agent_rpc_needs_its_role() {
 async fn mutual_tls_refuses_clients_without_a_certificate() {
     let dir = tempfile::tempdir().unwrap();
     let (learner, addr) = start_learner(dir.path(), "server-mtls", "run");
-    let status = async |name: &str| -> Result<(), String> {
-        let channel = credentials()
-            .client(name)
-            .connect(&addr, Duration::from_secs(10))
-            .await
-            .map_err(|e| e.to_string())?;
-        LearnerClient::new(channel)
-            .get_status(pb::LearnerStatusRequest {})
-            .await
-            .map(drop)
-            .map_err(|e| e.to_string())
-    };
+    let status = async |name: &str| learner_status(&addr, name).await.map(drop);
     status("control-cert").await.unwrap();
     let err = status("read").await.unwrap_err();
     assert!(

@@ -1,6 +1,6 @@
 //! Training with real processes: a learner and two actors on loopback
 //! through the SIGKILL of an actor and of the learner, and the one-command
-//! `learner train` stopped by SIGINT.
+//! `experiment train` stopped by SIGINT.
 
 use std::path::Path;
 use std::process::{Child, Command, Stdio};
@@ -72,12 +72,15 @@ fn newest_checkpoint(dir: &Path) -> Option<(u64, u64)> {
         .max()
 }
 
-/// `learner train` of the train file `train` into `out`, with a JSON summary.
+/// `experiment train` of the train file `train` into `out`, with a JSON
+/// summary.
 fn train_command(train: &str, out: &Path) -> Command {
-    let mut command = Command::new(binary("learner"));
+    let mut command = Command::new(binary("experiment"));
     command
         .args(["--config", train, "train", "--json", "--out"])
         .arg(out)
+        .arg("--learner-bin")
+        .arg(binary("learner"))
         .arg("--actor-bin")
         .arg(binary("actor"));
     command

@@ -2,14 +2,14 @@
 //! overlay and watchdog, and the episode loop over them.
 
 use super::{ControlConfig, Ending, EpisodeSummary, Halt, HaltKind, LoopTiming, StepLog, Watchdog};
-use crate::apt::StopMode;
-use crate::camera::Camera;
 use crate::overlay::Overlay;
-use crate::segment::{Detection, SegmentError, Segmenter};
-use crate::stages::{StagePair, Stopper};
+use kdc101::apt::StopMode;
+use kdc101::{StagePair, Stopper};
 use std::io::{Read, Write};
 use std::time::{Duration, Instant};
 use tweezer_gym::{Action, EnvConfig, Observation, ObservationBounds, Policy};
+use tweezer_vision::Camera;
+use tweezer_vision::{Detection, SegmentError, Segmenter};
 
 /// A rig that cannot be assembled.
 #[derive(Debug, thiserror::Error)]

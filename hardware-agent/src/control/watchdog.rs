@@ -2,7 +2,7 @@
 //! not checked in by its deadline (a stalled camera, policy or driver),
 //! whatever the loop itself is stuck in.
 
-use crate::stages::Stopper;
+use kdc101::Stopper;
 use std::io::Write;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex};
@@ -89,7 +89,7 @@ impl Drop for Watchdog {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::stages::SharedPort;
+    use kdc101::SharedPort;
 
     #[test]
     fn a_missed_deadline_sends_immediate_stops() {

@@ -1,21 +1,20 @@
 //! The thread that owns the instrument and the policy: it runs the jobs the
 //! service hands it, one at a time, and keeps the shared status current.
 
-use super::status::{Shared, State};
+use super::state::{DaemonState, State, Telemetry};
+use kdc101::apt::StopMode;
 use std::sync::Arc;
 use std::sync::atomic::Ordering;
 use std::sync::mpsc::{Receiver, Sender, channel};
 use std::thread::JoinHandle;
 use tokio::sync::oneshot;
 use tweezer_gym::{Action, Observation};
-use tweezer_hardware_agent::apt::StopMode;
 use tweezer_hardware_agent::config::AgentConfig;
 use tweezer_hardware_agent::control::{Ending, EpisodeSummary, StepLog};
 use tweezer_hardware_agent::instrument::Instrument;
 use tweezer_hardware_agent::overlay::OverlaySpec;
 use tweezer_hardware_agent::policy_source::{LoadedPolicy, PolicyChoice};
 use tweezer_hardware_agent::record::EpisodeHeader;
-use tweezer_proto::{action_to_wire, observation_to_wire, pb};
 use tweezer_rpc::Security;
 
 /// Where an episode's target lies.
@@ -61,7 +60,7 @@ pub struct ControlThread {
     config: AgentConfig,
     /// How learners' snapshots are fetched.
     security: Security,
-    shared: Arc<Shared>,
+    shared: Arc<DaemonState>,
 }
 
 impl ControlThread {
@@ -71,7 +70,7 @@ impl ControlThread {
         policy: LoadedPolicy,
         config: AgentConfig,
         security: Security,
-        shared: Arc<Shared>,
+        shared: Arc<DaemonState>,
     ) -> std::io::Result<(Sender<Job>, JoinHandle<()>)> {
         let (jobs, inbox) = channel();
         let mut thread = Self {
@@ -268,7 +267,7 @@ fn shared_count(counter: &std::sync::atomic::AtomicU64) {
 }
 
 /// Updates the status and sends telemetry for one step.
-fn report_step(shared: &Shared, episode: u64, log: &StepLog) {
+fn report_step(shared: &DaemonState, episode: u64, log: &StepLog) {
     shared.steps.fetch_add(1, Ordering::Relaxed);
     shared.latency_seconds.observe(log.latency_ms / 1e3);
     {
@@ -286,39 +285,23 @@ fn report_step(shared: &Shared, episode: u64, log: &StepLog) {
         vector: log.vector,
     };
     let action = Action::clipped(log.action[0], log.action[1]).unwrap_or(Action::ZERO);
-    let _ = shared.telemetry.send(pb::Telemetry {
+    let _ = shared.telemetry.send(Telemetry::Step {
         episode,
         step: log.step,
         time_s: log.time_s,
-        observation: Some(observation_to_wire(&observation)),
-        action: Some(action_to_wire(action)),
-        stage: Some(pb::StagePosition {
-            x_mm: log.stage_mm[0],
-            y_mm: log.stage_mm[1],
-        }),
+        observation,
+        action,
+        stage_mm: log.stage_mm,
         latency_ms: log.latency_ms,
-        outcome: pb::Outcome::Running.into(),
     });
 }
 
 /// The telemetry message that closes an episode.
-fn final_telemetry(episode: u64, summary: &EpisodeSummary) -> pb::Telemetry {
-    pb::Telemetry {
+fn final_telemetry(episode: u64, summary: &EpisodeSummary) -> Telemetry {
+    Telemetry::End {
         episode,
-        step: summary.steps,
+        steps: summary.steps,
         time_s: summary.duration_s,
-        outcome: ending_to_wire(&summary.ending).into(),
-        ..pb::Telemetry::default()
-    }
-}
-
-/// The wire outcome of an ending.
-pub fn ending_to_wire(ending: &Ending) -> pb::Outcome {
-    match ending {
-        Ending::Success => pb::Outcome::Success,
-        Ending::Collision => pb::Outcome::Collision,
-        Ending::Timeout => pb::Outcome::Timeout,
-        Ending::Stopped | Ending::EmergencyStopped(_) => pb::Outcome::Stopped,
-        Ending::TrapLost | Ending::Fault(_) => pb::Outcome::Fault,
+        ending: summary.ending.clone(),
     }
 }

@@ -1,8 +1,8 @@
 //! The `tweezer.v1.HardwareAgent` gRPC service: wire types in, jobs and
 //! halt requests out, the shared status back as wire types.
 
-use super::control_thread::{Job, JobError, Target, ending_to_wire};
-use super::status::{Shared, State, Status};
+use super::control_thread::{Job, JobError, Target};
+use super::state::{DaemonState, State, Status, Telemetry};
 use std::pin::Pin;
 use std::sync::Arc;
 use std::sync::mpsc::Sender;
@@ -11,11 +11,11 @@ use tokio::sync::{broadcast, mpsc, oneshot};
 use tokio_stream::Stream;
 use tokio_stream::wrappers::ReceiverStream;
 use tonic::{Request, Response, Status as RpcStatus};
-use tweezer_hardware_agent::control::HaltKind;
+use tweezer_hardware_agent::control::{Ending, HaltKind};
 use tweezer_hardware_agent::overlay::{MAX_DISCS, OverlaySpec, Wall};
 use tweezer_hardware_agent::policy_source::{PolicyChoice, SnapshotChoice};
-use tweezer_proto::pb;
 use tweezer_proto::pb::hardware_agent_server::HardwareAgent;
+use tweezer_proto::{action_to_wire, observation_to_wire, pb};
 
 /// How long StopEpisode waits for the loop to end before answering.
 const STOP_WAIT: Duration = Duration::from_secs(3);
@@ -26,12 +26,12 @@ type TelemetryStream = Pin<Box<dyn Stream<Item = Result<pb::Telemetry, RpcStatus
 
 /// The service over the shared state.
 pub struct AgentService {
-    shared: Arc<Shared>,
+    shared: Arc<DaemonState>,
     jobs: Sender<Job>,
 }
 
 impl AgentService {
-    pub fn new(shared: Arc<Shared>, jobs: Sender<Job>) -> Self {
+    pub fn new(shared: Arc<DaemonState>, jobs: Sender<Job>) -> Self {
         Self { shared, jobs }
     }
 
@@ -241,7 +241,7 @@ impl HardwareAgent for AgentService {
             loop {
                 match feed.recv().await {
                     Ok(message) => {
-                        if tx.send(Ok(message)).await.is_err() {
+                        if tx.send(Ok(telemetry_to_wire(message))).await.is_err() {
                             break;
                         }
                     }
@@ -253,6 +253,56 @@ impl HardwareAgent for AgentService {
             }
         });
         Ok(Response::new(Box::pin(ReceiverStream::new(rx))))
+    }
+}
+
+/// A telemetry message on the wire.
+fn telemetry_to_wire(telemetry: Telemetry) -> pb::Telemetry {
+    match telemetry {
+        Telemetry::Step {
+            episode,
+            step,
+            time_s,
+            observation,
+            action,
+            stage_mm,
+            latency_ms,
+        } => pb::Telemetry {
+            episode,
+            step,
+            time_s,
+            observation: Some(observation_to_wire(&observation)),
+            action: Some(action_to_wire(action)),
+            stage: Some(pb::StagePosition {
+                x_mm: stage_mm[0],
+                y_mm: stage_mm[1],
+            }),
+            latency_ms,
+            outcome: pb::Outcome::Running.into(),
+        },
+        Telemetry::End {
+            episode,
+            steps,
+            time_s,
+            ending,
+        } => pb::Telemetry {
+            episode,
+            step: steps,
+            time_s,
+            outcome: ending_to_wire(&ending).into(),
+            ..pb::Telemetry::default()
+        },
+    }
+}
+
+/// The wire outcome of an ending.
+fn ending_to_wire(ending: &Ending) -> pb::Outcome {
+    match ending {
+        Ending::Success => pb::Outcome::Success,
+        Ending::Collision => pb::Outcome::Collision,
+        Ending::Timeout => pb::Outcome::Timeout,
+        Ending::Stopped | Ending::EmergencyStopped(_) => pb::Outcome::Stopped,
+        Ending::TrapLost | Ending::Fault(_) => pb::Outcome::Fault,
     }
 }
 

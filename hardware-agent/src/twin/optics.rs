@@ -4,10 +4,10 @@
 //! gradient and vignetting, defocus blur, shot and read noise, and
 //! out-of-focus debris.
 
-use crate::camera::GrayFrame;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 use tweezer_gym::SplitMix64;
+use tweezer_vision::GrayFrame;
 
 /// How the twin camera renders; lengths in px, contrasts relative to the
 /// local illumination.

@@ -2,9 +2,9 @@
 //! centres are known.
 
 use super::OpticsConfig;
-use crate::segment::{Detection, SegmentConfig, SegmentError, Segmenter};
 use serde::Serialize;
 use tweezer_gym::{Env, EnvConfig, SplitMix64};
+use tweezer_vision::{Detection, SegmentConfig, SegmentError, Segmenter};
 
 /// A detection further than this from every true centre is false.
 pub const MATCH_RADIUS_PX: f64 = 10.0;

@@ -2,15 +2,15 @@
 //! virtual sample of free spheres (an episode of the virtual environment)
 //! under the trap, and its camera renders what the objective would see.
 
-use super::{OpticsConfig, TwinStage};
-use crate::apt::ActuatorModel;
-use crate::camera::{Camera, CameraError, GrayFrame};
-use crate::stages::Calibration;
+use super::OpticsConfig;
+use kdc101::{ActuatorModel, Calibration, PtySimulator};
 use serde::{Deserialize, Serialize};
 use std::path::Path;
 use std::sync::Arc;
 use std::time::Duration;
-use tweezer_gym::{ConfigError, Env, EnvConfig, SplitMix64};
+use tweezer_config::ConfigError;
+use tweezer_gym::{Env, EnvConfig, SplitMix64};
+use tweezer_vision::{Camera, CameraError, GrayFrame};
 
 /// The `[twin]` table: the digital twin of the microscope.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -62,7 +62,7 @@ impl TwinConfig {
 /// The twin's two stages (X, Y), each a simulated KDC101 on its own
 /// pseudo-terminal.
 #[derive(Debug)]
-pub struct TwinStages([TwinStage; 2]);
+pub struct TwinStages([PtySimulator; 2]);
 
 impl TwinStages {
     /// Starts both controllers.
@@ -74,8 +74,8 @@ impl TwinStages {
         };
         let latency = Duration::from_millis(config.latency_ms);
         Ok(Self([
-            TwinStage::spawn(27_000_001, model, latency)?,
-            TwinStage::spawn(27_000_002, model, latency)?,
+            PtySimulator::spawn(27_000_001, model, latency)?,
+            PtySimulator::spawn(27_000_002, model, latency)?,
         ]))
     }
 
@@ -85,7 +85,7 @@ impl TwinStages {
     }
 
     /// The stages themselves (X, Y).
-    pub fn stages(&self) -> &[TwinStage; 2] {
+    pub fn stages(&self) -> &[PtySimulator; 2] {
         &self.0
     }
 

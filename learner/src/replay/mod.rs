@@ -11,4 +11,6 @@
 
 mod storage;
 
-pub use storage::{Replay, ReplayConfig, ReplayDecodeError, ReplayError, SampledBatch, Source};
+pub use storage::{
+    Replay, ReplayConfig, ReplayDecodeError, ReplayError, SampledTransitions, Source,
+};

@@ -8,10 +8,11 @@ use tweezer_gym::{Observation, SplitMix64, StepRecord};
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct ReplayConfig {
-    /// Transitions held before the oldest are removed (SPEC §4: 1,050,000).
+    /// Transitions held before the oldest are removed (`docs/spec.md` §4:
+    /// 1,050,000).
     pub capacity: usize,
-    /// Sphere centres budgeted per transition; when the centre store is
-    /// full the oldest records go first, whatever their number. SPEC density
+    /// Sphere centres budgeted per transition; when the centre store is full
+    /// the oldest records go first, whatever their number. The spec's density
     /// averages about 12 centres per observation.
     pub centres_per_transition: usize,
 }
@@ -70,7 +71,7 @@ struct Pending {
 /// A uniformly sampled batch, laid out for the networks: observations'
 /// centres are left to the caller to render.
 #[derive(Clone, Debug, Default, PartialEq)]
-pub struct SampledBatch {
+pub struct SampledTransitions {
     /// Centres of each observation.
     pub centres: Vec<Vec<[f32; 2]>>,
     /// Target vectors, `[batch, 2]` row-major.
@@ -262,11 +263,15 @@ impl Replay {
     }
 
     /// Draws `batch` transitions uniformly at random (with replacement).
-    pub fn sample(&self, batch: usize, rng: &mut SplitMix64) -> Result<SampledBatch, ReplayError> {
+    pub fn sample(
+        &self,
+        batch: usize,
+        rng: &mut SplitMix64,
+    ) -> Result<SampledTransitions, ReplayError> {
         if self.transitions == 0 {
             return Err(ReplayError::Empty);
         }
-        let mut out = SampledBatch::default();
+        let mut out = SampledTransitions::default();
         for _ in 0..batch {
             let record = self.draw(rng);
             let next = self

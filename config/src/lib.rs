@@ -1,0 +1,62 @@
+//! Configuration files: reading a TOML file into a typed configuration,
+//! and the error every process reports a bad file with, naming the file or
+//! the dotted path of the field that is wrong (`env.time_limit`).
+
+use serde::de::DeserializeOwned;
+use std::path::Path;
+
+/// A configuration value that is out of range, named by its TOML path.
+#[derive(Debug, thiserror::Error, PartialEq)]
+pub enum ConfigError {
+    /// A field holds a value it must not.
+    #[error("invalid config field `{field}`: {reason}")]
+    Invalid {
+        /// Dotted path of the field, as written in TOML.
+        field: String,
+        /// What is wrong with it.
+        reason: String,
+    },
+    /// The TOML text does not parse or names unknown fields.
+    #[error("invalid config: {0}")]
+    Parse(String),
+    /// The file cannot be read.
+    #[error("cannot read config file {path}: {reason}")]
+    Read {
+        /// The file.
+        path: String,
+        /// The operating system's reason.
+        reason: String,
+    },
+}
+
+impl ConfigError {
+    /// Field `field` (its dotted TOML path) holds a value it must not.
+    pub fn invalid(field: &str, reason: impl Into<String>) -> Self {
+        Self::Invalid {
+            field: field.to_string(),
+            reason: reason.into(),
+        }
+    }
+
+    /// The same error for a configuration nested under `table` in a larger
+    /// file: field `time_limit` becomes `env.time_limit`.
+    pub fn in_table(self, table: &str) -> Self {
+        match self {
+            Self::Invalid { field, reason } => Self::Invalid {
+                field: format!("{table}.{field}"),
+                reason,
+            },
+            other => other,
+        }
+    }
+}
+
+/// Reads and parses a TOML file into any configuration type; errors name
+/// the file. Validation is the caller's.
+pub fn read_toml<T: DeserializeOwned>(path: &Path) -> Result<T, ConfigError> {
+    let text = std::fs::read_to_string(path).map_err(|e| ConfigError::Read {
+        path: path.display().to_string(),
+        reason: e.to_string(),
+    })?;
+    toml::from_str(&text).map_err(|e| ConfigError::Parse(format!("{}: {e}", path.display())))
+}

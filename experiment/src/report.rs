@@ -1,0 +1,385 @@
+//! `experiment report`: the paper's figures and an evaluation table for one or
+//! more run directories. Runs with the same label (a sweep's seeds) are
+//! averaged in Fig. 4; each run's snapshot — the best of its kept ones on
+//! validation seeds, or the one published at its best rolling return — is
+//! evaluated on held-out seeds next to the greedy baseline; the best of them
+//! is drawn (Figs. 5, 6).
+
+use crate::train_file::TrainFile;
+use anyhow::Context;
+use burn::tensor::Device;
+use serde::Serialize;
+use std::io::BufRead;
+use std::path::{Path, PathBuf};
+use tweezer_figures::{Curve, RewardFigure, draw_episodes, reward_figure};
+use tweezer_gym::{EnvConfig, EvalSummary, Greedy, evaluate};
+use tweezer_learner::config::LearnerFile;
+use tweezer_learner::run_dir::RunDir;
+use tweezer_nets::NetworkPolicy;
+
+/// Episodes in Fig. 4's rolling mean (the paper's).
+pub const WINDOW: usize = 100;
+
+/// What to evaluate and draw.
+#[derive(Clone, Debug)]
+pub struct ReportOptions {
+    /// Held-out episode seeds for the table.
+    pub seeds: Vec<u64>,
+    /// Episode seeds drawn as Figs. 5 and 6.
+    pub picture_seeds: Vec<u64>,
+    /// Seeds, apart from the held-out ones, on which each run's kept
+    /// snapshots are compared to choose the one reported; none: `best`.
+    pub validation_seeds: Option<Vec<u64>>,
+    /// Episodes evaluated side by side.
+    pub batch: usize,
+}
+
+/// One row of the evaluation table.
+#[derive(Clone, Debug, Serialize)]
+pub struct EvalRow {
+    /// The setting.
+    pub label: String,
+    /// The run directory (empty for the greedy baseline).
+    pub run: String,
+    /// `v<N>` or `greedy`.
+    pub policy: String,
+    /// How the snapshot was chosen (empty for greedy).
+    pub chosen_by: String,
+    /// The snapshot file.
+    pub snapshot: String,
+    /// The rates and means.
+    #[serde(flatten)]
+    pub summary: EvalSummary,
+}
+
+/// The report's JSON file.
+#[derive(Debug, Serialize)]
+pub struct Report {
+    /// Episode seeds of the table.
+    pub seeds: String,
+    /// Rows: each run's best snapshot, then greedy per environment.
+    pub rows: Vec<EvalRow>,
+    /// Theoretical maximum return per label.
+    pub ideal_return: Vec<(String, f64)>,
+    /// The files written.
+    pub files: Vec<PathBuf>,
+}
+
+/// A run directory, read.
+struct Run {
+    dir: PathBuf,
+    label: String,
+    env: EnvConfig,
+    returns: Vec<f64>,
+}
+
+impl Run {
+    fn read(dir: &Path) -> anyhow::Result<Self> {
+        let run = RunDir::new(dir);
+        let config = LearnerFile::load(Some(&run.config()))
+            .with_context(|| format!("{} is not a run directory", dir.display()))?;
+        let label = run_label(dir)?;
+        let returns = episode_returns(&run.run_log())?;
+        Ok(Self {
+            dir: dir.to_path_buf(),
+            label,
+            env: config.env,
+            returns,
+        })
+    }
+
+    /// The snapshot files to choose from: `best` first, then the kept
+    /// versions, newest first.
+    fn candidates(&self) -> anyhow::Result<Vec<PathBuf>> {
+        let run = RunDir::new(&self.dir);
+        let dir = run.snapshots();
+        let best = run.best_snapshot();
+        if !best.is_file() {
+            return Ok(Vec::new());
+        }
+        let mut versions: Vec<PathBuf> = std::fs::read_dir(&dir)
+            .with_context(|| format!("cannot list {}", dir.display()))?
+            .filter_map(|e| e.ok().map(|e| e.path()))
+            .filter(|p| {
+                p.file_name()
+                    .and_then(|n| n.to_str())
+                    .is_some_and(|n| n.starts_with('v') && n.ends_with(".safetensors"))
+            })
+            .collect();
+        versions.sort_unstable_by(|a, b| b.cmp(a));
+        Ok(std::iter::once(best).chain(versions).collect())
+    }
+
+    /// The policy to report: with `validation` seeds, the candidate with
+    /// the highest success rate (then return) on them; else `best`.
+    fn choose(
+        &self,
+        validation: Option<&[u64]>,
+        batch: usize,
+        device: &Device,
+    ) -> anyhow::Result<Option<Chosen>> {
+        let candidates = self.candidates()?;
+        let Some(validation) = validation else {
+            let Some(path) = candidates.first() else {
+                return Ok(None);
+            };
+            let (policy, info) = NetworkPolicy::from_file(path, &self.env, device)?;
+            return Ok(Some(Chosen {
+                path: path.clone(),
+                how: "best rolling return".into(),
+                policy,
+                version: info.version,
+            }));
+        };
+        let mut chosen: Option<(Chosen, EvalSummary)> = None;
+        let mut seen = Vec::new();
+        for path in &candidates {
+            let (mut policy, info) = NetworkPolicy::from_file(path, &self.env, device)?;
+            if seen.contains(&info.version) {
+                continue;
+            }
+            seen.push(info.version);
+            let summary = EvalSummary::of(&evaluate(&self.env, &mut policy, validation, batch)?);
+            tracing::info!(run = %self.dir.display(), version = info.version, success = summary.success_rate, "validated");
+            if chosen.as_ref().is_none_or(|(_, b)| better(&summary, b)) {
+                let candidate = Chosen {
+                    path: path.clone(),
+                    how: String::new(),
+                    policy,
+                    version: info.version,
+                };
+                chosen = Some((candidate, summary));
+            }
+        }
+        let how = format!(
+            "best of {} on validation seeds {}",
+            seen.len(),
+            describe_seeds(validation)
+        );
+        Ok(chosen.map(|(chosen, _)| Chosen { how, ..chosen }))
+    }
+}
+
+/// The snapshot a run is reported with, loaded, and how it was chosen.
+struct Chosen {
+    path: PathBuf,
+    how: String,
+    policy: NetworkPolicy,
+    version: u64,
+}
+
+/// The run's label from its train file, or the directory's name.
+fn run_label(dir: &Path) -> anyhow::Result<String> {
+    let path = RunDir::new(dir).train_file();
+    if path.is_file() {
+        let train = TrainFile::load(&path)?;
+        if !train.train.label.is_empty() {
+            return Ok(train.train.label);
+        }
+    }
+    let name = std::fs::canonicalize(dir)
+        .ok()
+        .and_then(|d| d.file_name().map(|n| n.to_string_lossy().into_owned()));
+    Ok(name.unwrap_or_else(|| dir.display().to_string()))
+}
+
+/// Every episode's return from a metrics file, in order. A torn last line
+/// (a learner killed mid-write) is skipped.
+fn episode_returns(path: &Path) -> anyhow::Result<Vec<f64>> {
+    let file =
+        std::fs::File::open(path).with_context(|| format!("cannot open {}", path.display()))?;
+    let mut returns = Vec::new();
+    for (number, line) in std::io::BufReader::new(file).lines().enumerate() {
+        let line = line.with_context(|| format!("cannot read {}", path.display()))?;
+        let Ok(value) = serde_json::from_str::<serde_json::Value>(&line) else {
+            tracing::warn!(path = %path.display(), line = number + 1, "skipping an unreadable metrics line");
+            continue;
+        };
+        if value["kind"] == "episode"
+            && let Some(r) = value["episode_return"].as_f64()
+        {
+            returns.push(r);
+        }
+    }
+    Ok(returns)
+}
+
+/// Writes Fig. 4 (`fig4-reward.svg`), the evaluation table (`eval.md`,
+/// `eval.json`) and Figs. 5 and 6 of the best run's best snapshot into `out`.
+pub fn write(runs: &[PathBuf], out: &Path, options: &ReportOptions) -> anyhow::Result<Report> {
+    anyhow::ensure!(!runs.is_empty(), "no run directory to report on");
+    let runs = runs
+        .iter()
+        .map(|d| Run::read(d))
+        .collect::<anyhow::Result<Vec<_>>>()?;
+    std::fs::create_dir_all(out).with_context(|| format!("cannot create {}", out.display()))?;
+    let mut files = Vec::new();
+
+    let mut curves: Vec<Curve> = Vec::new();
+    let mut ideal: Vec<(String, f64)> = Vec::new();
+    for run in &runs {
+        match curves.iter_mut().find(|c| c.label == run.label) {
+            Some(curve) => curve.runs.push(run.returns.clone()),
+            None => {
+                curves.push(Curve {
+                    label: run.label.clone(),
+                    runs: vec![run.returns.clone()],
+                });
+                ideal.push((run.label.clone(), run.env.ideal_return()));
+            }
+        }
+    }
+    let fig4 = out.join("fig4-reward.svg");
+    let all_equal = ideal.windows(2).all(|w| (w[0].1 - w[1].1).abs() < 1e-9);
+    let dashed = if all_equal {
+        vec![(String::new(), ideal[0].1)]
+    } else {
+        ideal.iter().map(|(l, v)| (format!(" ({l})"), *v)).collect()
+    };
+    let figure = RewardFigure {
+        title: "Reward per episode".into(),
+        window: WINDOW,
+        ideal: dashed,
+    };
+    match reward_figure(&curves, &figure, &fig4) {
+        Ok(()) => files.push(fig4),
+        Err(tweezer_figures::FigureError::Empty) => {
+            tracing::warn!("no episode finished in any run: no Fig. 4");
+        }
+        Err(e) => return Err(e.into()),
+    }
+
+    let device = Device::flex();
+    let mut rows = Vec::new();
+    let mut best: Option<(usize, NetworkPolicy, EvalSummary)> = None;
+    for (k, run) in runs.iter().enumerate() {
+        let validation = options.validation_seeds.as_deref();
+        let Some(mut chosen) = run.choose(validation, options.batch, &device)? else {
+            tracing::warn!(run = %run.dir.display(), "no best snapshot yet: not evaluated");
+            continue;
+        };
+        let summary = EvalSummary::of(&evaluate(
+            &run.env,
+            &mut chosen.policy,
+            &options.seeds,
+            options.batch,
+        )?);
+        rows.push(EvalRow {
+            label: run.label.clone(),
+            run: run.dir.display().to_string(),
+            policy: format!("v{}", chosen.version),
+            chosen_by: chosen.how,
+            snapshot: chosen.path.display().to_string(),
+            summary,
+        });
+        if best.as_ref().is_none_or(|(_, _, b)| better(&summary, b)) {
+            best = Some((k, chosen.policy, summary));
+        }
+    }
+    let mut baselines: Vec<&EnvConfig> = Vec::new();
+    for run in &runs {
+        if baselines.contains(&&run.env) {
+            continue;
+        }
+        baselines.push(&run.env);
+        let summary = EvalSummary::of(&evaluate(
+            &run.env,
+            &mut Greedy,
+            &options.seeds,
+            options.batch,
+        )?);
+        rows.push(EvalRow {
+            label: run.label.clone(),
+            run: String::new(),
+            policy: "greedy".into(),
+            chosen_by: String::new(),
+            snapshot: String::new(),
+            summary,
+        });
+    }
+
+    if let Some((k, mut policy, _)) = best {
+        let run = &runs[k];
+        let pictures = draw_episodes(&run.env, &mut policy, &options.picture_seeds, out)?;
+        files.extend(pictures.written);
+    }
+
+    let seeds = describe_seeds(&options.seeds);
+    let md = out.join("eval.md");
+    std::fs::write(&md, markdown(&rows, &seeds))
+        .with_context(|| format!("cannot write {}", md.display()))?;
+    files.push(md);
+    let json = out.join("eval.json");
+    files.push(json.clone());
+    let report = Report {
+        seeds,
+        rows,
+        ideal_return: ideal,
+        files,
+    };
+    std::fs::write(&json, serde_json::to_string_pretty(&report)?)
+        .with_context(|| format!("cannot write {}", json.display()))?;
+    Ok(report)
+}
+
+/// Higher success rate first, then higher mean return.
+fn better(a: &EvalSummary, b: &EvalSummary) -> bool {
+    (a.success_rate, a.mean_return) > (b.success_rate, b.mean_return)
+}
+
+/// `100000..100200` for a contiguous list, else the count.
+fn describe_seeds(seeds: &[u64]) -> String {
+    match (seeds.first(), seeds.last()) {
+        (Some(&a), Some(&b)) if seeds.windows(2).all(|w| w[1] == w[0] + 1) => {
+            format!("{a}..{}", b + 1)
+        }
+        _ => format!("{} seeds", seeds.len()),
+    }
+}
+
+/// The table in Markdown.
+fn markdown(rows: &[EvalRow], seeds: &str) -> String {
+    let mut md = format!(
+        "Evaluation on episode seeds {seeds}\n\n| setting | policy | chosen by | run | episodes | success | collision | timeout | mean return | mean steps |\n| --- | --- | --- | --- | ---: | ---: | ---: | ---: | ---: | ---: |\n"
+    );
+    for r in rows {
+        let s = &r.summary;
+        md.push_str(&format!(
+            "| {} | {} | {} | {} | {} | {:.3} | {:.3} | {:.3} | {:.1} | {:.1} |\n",
+            r.label,
+            r.policy,
+            r.chosen_by,
+            r.run,
+            s.episodes,
+            s.success_rate,
+            s.collision_rate,
+            s.timeout_rate,
+            s.mean_return,
+            s.mean_steps
+        ));
+    }
+    md
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn seeds_are_described_as_a_range_when_contiguous() {
+        assert_eq!(describe_seeds(&[5, 6, 7]), "5..8");
+        assert_eq!(describe_seeds(&[5, 7]), "2 seeds");
+    }
+
+    #[test]
+    fn episode_returns_skip_other_kinds_and_torn_lines() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("metrics.jsonl");
+        std::fs::write(
+            &path,
+            "{\"kind\":\"episode\",\"episode_return\":1.5}\n{\"kind\":\"update\",\"updates\":3}\n{\"kind\":\"episode\",\"episode_return\":-2}\n{\"kind\":\"epi",
+        )
+        .unwrap();
+        assert_eq!(episode_returns(&path).unwrap(), vec![1.5, -2.0]);
+    }
+}

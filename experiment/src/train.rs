@@ -1,0 +1,368 @@
+//! `experiment train`: one command trains an agent. It writes a run directory,
+//! starts `learner serve` and K actor processes on loopback (real processes,
+//! real gRPC), shows progress from the learner's status, stops them in order
+//! (actors, then the learner with its final checkpoint) at the time limit or
+//! on SIGINT/SIGTERM, and ends with the report of the run: the best
+//! snapshot evaluated on held-out seeds next to greedy, and the figures.
+//! A file with a `[sweep]` trains each of its runs in turn, then reports
+//! over all of them.
+
+use crate::processes::{ActorLauncher, Process, sibling_binary, start_learner, stop_actors};
+use crate::progress::{self, Progress};
+use crate::report::{self, Report, ReportOptions};
+use crate::train_file::TrainFile;
+use anyhow::{Context, bail};
+use serde::Serialize;
+use std::path::{Path, PathBuf};
+use std::time::{Duration, Instant};
+use tweezer_gym::SplitMix64;
+use tweezer_learner::config::LearnerFile;
+use tweezer_learner::durable_write::write_bytes_atomic;
+use tweezer_learner::run_dir::RunDir;
+use tweezer_learner::run_log::RunLog;
+use tweezer_process::stop_signal;
+use tweezer_proto::pb::LearnerStatus;
+use tweezer_proto::pb::learner_client::LearnerClient;
+use tweezer_rpc::{AuthChannel, ClientSecurity, LoopbackCredentials, Security, learner_status};
+
+/// How often the learner's status is polled.
+const POLL: Duration = Duration::from_secs(1);
+/// Restarts of one actor after which the run gives up.
+const MAX_RESTARTS: u32 = 5;
+
+/// What to run.
+#[derive(Debug)]
+pub struct TrainOptions {
+    /// The run's settings (ignored when resuming: the run's own are used).
+    pub file: TrainFile,
+    /// The run directory.
+    pub out: PathBuf,
+    /// Continue the run in `out` from its newest checkpoint.
+    pub resume: bool,
+    /// Minutes of training instead of `train.minutes`.
+    pub minutes: Option<f64>,
+    /// The learner binary, if not next to this one.
+    pub learner_bin: Option<PathBuf>,
+    /// The actor binary, if not next to this one.
+    pub actor_bin: Option<PathBuf>,
+}
+
+/// The binaries a run starts.
+struct Binaries {
+    learner: PathBuf,
+    actor: PathBuf,
+}
+
+/// How the run went: printed at the end, and a `train` line of its metrics.
+#[derive(Debug, Serialize)]
+pub struct TrainSummary {
+    /// The run directory.
+    pub run_dir: PathBuf,
+    /// Whether a signal ended it before its time limit.
+    pub interrupted: bool,
+    /// Seconds of training in this session.
+    pub seconds: f64,
+    /// Steps stored and updates made in this session.
+    pub steps: u64,
+    /// Updates made in this session.
+    pub updates: u64,
+    /// Steps stored per second of this session, all actors together.
+    pub end_to_end_steps_per_sec: f64,
+    /// Updates per second of this session.
+    pub updates_per_sec: f64,
+    /// Actor restarts after unexpected exits.
+    pub actor_restarts: u32,
+}
+
+/// What a training command did: its runs (one, or a sweep's), and the
+/// report over them.
+#[derive(Debug, Serialize)]
+pub struct TrainOutcome {
+    /// Each run's summary, in the order they ran.
+    pub runs: Vec<TrainSummary>,
+    /// The report (absent when stopped again while it was being made).
+    pub report: Option<Report>,
+}
+
+/// Runs training as `options` say: one run, or each run of the file's
+/// sweep one after another (a signal ends the sweep); then the report over
+/// the runs into `<out>/report`.
+pub fn run(options: TrainOptions) -> anyhow::Result<TrainOutcome> {
+    let out = &options.out;
+    let runs: Vec<(PathBuf, TrainFile)> = if options.resume {
+        let file = TrainFile::load(&RunDir::new(out).train_file())
+            .with_context(|| format!("cannot resume {}", out.display()))?;
+        if !file.sweep.is_empty() {
+            bail!(
+                "{} is a sweep: resume its runs one by one (`experiment train --resume --out {0}/<run>`)",
+                out.display()
+            );
+        }
+        vec![(out.clone(), file)]
+    } else if options.file.sweep.is_empty() {
+        vec![(out.clone(), prepare(options.file.clone(), out)?)]
+    } else {
+        let runs = options.file.sweep.runs(&options.file)?;
+        claim(out)?;
+        write_file(&RunDir::new(out).train_file(), &options.file.to_toml())?;
+        runs.into_iter()
+            .map(|run| {
+                let dir = out.join(&run.name);
+                prepare(run.file, &dir).map(|file| (dir, file))
+            })
+            .collect::<anyhow::Result<_>>()?
+    };
+    let binaries = Binaries {
+        learner: sibling_binary("learner", options.learner_bin.as_deref())?,
+        actor: sibling_binary("actor", options.actor_bin.as_deref())?,
+    };
+    let runtime = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(2)
+        .enable_all()
+        .build()?;
+    runtime.block_on(async {
+        let mut summaries = Vec::new();
+        for (k, (dir, file)) in runs.iter().enumerate() {
+            if runs.len() > 1 {
+                eprintln!("run {} of {}: {}", k + 1, runs.len(), file.train.label);
+            }
+            let minutes = options.minutes.unwrap_or(file.train.minutes);
+            if !(minutes.is_finite() && minutes >= 0.0) {
+                bail!("--minutes must be finite and >= 0, got {minutes}");
+            }
+            let limit = (minutes > 0.0).then(|| Duration::from_secs_f64(minutes * 60.0));
+            let summary = supervise(file, dir, options.resume, limit, &binaries).await?;
+            let interrupted = summary.interrupted;
+            summaries.push(summary);
+            if interrupted {
+                break;
+            }
+        }
+        let dirs: Vec<PathBuf> = summaries.iter().map(|s| s.run_dir.clone()).collect();
+        let report = final_report(&runs[0].1, dirs, RunDir::new(out).report()).await?;
+        Ok(TrainOutcome {
+            runs: summaries,
+            report,
+        })
+    })
+}
+
+/// The report over `runs`, unless a signal comes first.
+async fn final_report(
+    file: &TrainFile,
+    runs: Vec<PathBuf>,
+    out: PathBuf,
+) -> anyhow::Result<Option<Report>> {
+    eprintln!("evaluating the best snapshots and drawing the report (Ctrl-C skips this)");
+    let options = ReportOptions {
+        seeds: file.train.eval_seeds()?.0,
+        picture_seeds: file.train.picture_seeds()?.0,
+        validation_seeds: file.train.validation_seeds()?.map(|s| s.0),
+        batch: file.train.eval_batch,
+    };
+    let dirs = runs
+        .iter()
+        .map(|d| d.display().to_string())
+        .collect::<Vec<_>>()
+        .join(" ");
+    let reporting = tokio::task::spawn_blocking(move || report::write(&runs, &out, &options));
+    tokio::select! {
+        signal = stop_signal() => {
+            eprintln!("{signal}: report skipped; run `experiment report {dirs}` later");
+            Ok(None)
+        }
+        written = reporting => Ok(Some(written??)),
+    }
+}
+
+/// Refuses a directory that already holds a run.
+fn claim(out: &Path) -> anyhow::Result<()> {
+    let run = RunDir::new(out);
+    if run.train_file().exists() || run.config().exists() {
+        bail!(
+            "{} already holds a run: continue it with `experiment train --resume --out {0}`, or choose another --out",
+            out.display()
+        );
+    }
+    std::fs::create_dir_all(out)
+        .with_context(|| format!("cannot create run directory {}", out.display()))
+}
+
+fn write_file(path: &Path, text: &str) -> anyhow::Result<()> {
+    write_bytes_atomic(path, text.as_bytes())
+        .with_context(|| format!("cannot write {}", path.display()))
+}
+
+/// A fresh run directory with the run's files: `train.toml` (everything),
+/// `config.toml` (the learner's), `actor.toml` (the actors').
+fn prepare(mut file: TrainFile, out: &Path) -> anyhow::Result<TrainFile> {
+    claim(out)?;
+    file.learner.run_dir = out.to_path_buf();
+    let learner = LearnerFile {
+        env: file.env.clone(),
+        learner: file.learner.clone(),
+    };
+    let mut actor = toml::Table::new();
+    actor.insert("env".into(), toml::Value::try_from(&file.env)?);
+    actor.insert("actor".into(), toml::Value::Table(file.actor.clone()));
+    let run = RunDir::new(out);
+    write_file(&run.train_file(), &file.to_toml())?;
+    write_file(&run.config(), &learner.to_toml())?;
+    write_file(&run.actor_config(), &toml::to_string(&actor)?)?;
+    Ok(file)
+}
+
+/// Why training stopped.
+enum Ending {
+    TimeUp,
+    Signal(&'static str),
+}
+
+async fn supervise(
+    file: &TrainFile,
+    out: &Path,
+    resume: bool,
+    limit: Option<Duration>,
+    binaries: &Binaries,
+) -> anyhow::Result<TrainSummary> {
+    let run = RunDir::new(out);
+    let logs = run.logs();
+    std::fs::create_dir_all(&logs).with_context(|| format!("cannot create {}", logs.display()))?;
+    let credentials = LoopbackCredentials::provision(&run.security())?;
+    let (mut learner, addr) =
+        start_learner(&binaries.learner, &run, resume, &credentials.learner).await?;
+    tracing::info!(
+        learner = %addr,
+        "learner listening; watch it with `tweezer --security {} learner --learner {addr} status --watch 2`",
+        credentials.read.display()
+    );
+    let reader = ClientSecurity::load(&Security::load(Some(&credentials.read))?)?;
+    let mut client = LearnerClient::new(
+        reader
+            .connect(&addr.to_string(), Duration::from_secs(10))
+            .await
+            .context("cannot connect to the learner")?,
+    );
+    let first = status(&mut client).await?;
+    let launcher = ActorLauncher {
+        binary: binaries.actor.clone(),
+        config: run.actor_config(),
+        learner: addr,
+        security: credentials.actor.clone(),
+        logs: logs.clone(),
+    };
+    let seed = |k: usize, restarts: u32| {
+        let session = first.steps_inserted.rotate_left(20) ^ (u64::from(restarts) << 48);
+        SplitMix64::derived(file.learner.seed ^ session, k as u64).next_u64()
+    };
+    let mut actors = Vec::new();
+    let mut restarts = vec![0u32; file.train.actors];
+    for k in 0..file.train.actors {
+        actors.push(launcher.start(k, seed(k, 0))?);
+    }
+    let mut progress = Progress::new(limit);
+    progress.say(&format!(
+        "training in {} with {} actor(s){}; logs in {}",
+        out.display(),
+        actors.len(),
+        limit
+            .map(|l| format!(" for {}", progress::clock(l)))
+            .unwrap_or_default(),
+        logs.display()
+    ));
+    let started = Instant::now();
+    let mut last = first.clone();
+    let mut ticker = tokio::time::interval(POLL);
+    let stop = stop_signal();
+    tokio::pin!(stop);
+    let ending = loop {
+        tokio::select! {
+            signal = &mut stop => break Ending::Signal(signal),
+            _ = ticker.tick() => {}
+        }
+        if limit.is_some_and(|l| started.elapsed() >= l) {
+            break Ending::TimeUp;
+        }
+        if let Some(result) = learner.exited() {
+            let _ = stop_actors(&mut actors).await;
+            result?;
+            bail!(
+                "the learner exited before training ended; see {}",
+                logs.join("learner.log").display()
+            );
+        }
+        for (k, actor) in actors.iter_mut().enumerate() {
+            if let Some(result) = actor.exited() {
+                restarts[k] += 1;
+                let why = result
+                    .err()
+                    .map(|e| e.to_string())
+                    .unwrap_or_else(|| "exited".into());
+                if restarts[k] > MAX_RESTARTS {
+                    let _ = stop_actors(&mut actors).await;
+                    learner.stop(Duration::from_secs(3600)).await?;
+                    bail!(
+                        "actor-{k} failed {} times; the last time: {why}",
+                        restarts[k]
+                    );
+                }
+                progress.say(&format!("restarting actor-{k}: {why}"));
+                *actor = launcher.start(k, seed(k, restarts[k]))?;
+            }
+        }
+        match status(&mut client).await {
+            Ok(s) => {
+                progress.update(&s);
+                last = s;
+            }
+            Err(e) => progress.say(&format!("no status from the learner: {e:#}")),
+        }
+    };
+    let seconds = started.elapsed().as_secs_f64();
+    progress.finish();
+    let interrupted = match ending {
+        Ending::TimeUp => {
+            eprintln!("time is up: stopping the actors, then the learner (final checkpoint)");
+            false
+        }
+        Ending::Signal(signal) => {
+            eprintln!("{signal}: stopping the actors, then the learner (final checkpoint)");
+            true
+        }
+    };
+    if let Ok(s) = status(&mut client).await {
+        last = s;
+    }
+    for error in stop_actors(&mut actors).await {
+        eprintln!("{error:#}");
+    }
+    stop_learner(&mut learner).await?;
+
+    let steps = last.steps_inserted.saturating_sub(first.steps_inserted);
+    let updates = last.updates.saturating_sub(first.updates);
+    let summary = TrainSummary {
+        run_dir: out.to_path_buf(),
+        interrupted,
+        seconds,
+        steps,
+        updates,
+        end_to_end_steps_per_sec: steps as f64 / seconds.max(1e-9),
+        updates_per_sec: updates as f64 / seconds.max(1e-9),
+        actor_restarts: restarts.iter().sum(),
+    };
+    RunLog::append(&run.run_log())
+        .with_context(|| format!("cannot open {}", run.run_log().display()))?
+        .write("train", &summary);
+
+    Ok(summary)
+}
+
+/// Asks the learner to stop and waits for its final checkpoint.
+async fn stop_learner(learner: &mut Process) -> anyhow::Result<()> {
+    learner.terminate();
+    learner.wait().await
+}
+
+async fn status(client: &mut LearnerClient<AuthChannel>) -> anyhow::Result<LearnerStatus> {
+    learner_status(client).await.context("GetStatus failed")
+}

@@ -1,0 +1,5 @@
+//! The command line's one-shot commands; `serve` is the daemon (`daemon`).
+
+pub mod bench;
+pub mod run;
+pub mod segment;

@@ -1,0 +1,346 @@
+//! The training thread: TD3 updates as the rate limiter allows, snapshots
+//! every `snapshots.every_updates` updates, metrics lines, and checkpoints
+//! periodically and when the learner stops.
+
+use crate::checkpoint::{CheckpointHeader, Checkpoints, Loaded};
+use crate::config::LearnerFile;
+use crate::learner_state::LearnerState;
+use crate::limiter::limiter_state_name;
+use crate::minibatch::minibatch_tensors;
+use crate::td3::{Td3, UpdateStats};
+use anyhow::{Context, bail};
+use burn::tensor::Device;
+use serde::Serialize;
+use std::path::PathBuf;
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+use tweezer_gym::{Renderer, SplitMix64};
+use tweezer_nets::{ARCHITECTURE, SnapshotInfo, encode};
+
+/// Sums of update statistics between two metrics lines.
+#[derive(Default)]
+struct Sums {
+    n: u64,
+    critic_loss: f64,
+    actor_loss: f64,
+    actor_n: u64,
+    mean_q: f64,
+    update_ms: f64,
+}
+
+/// A line of the metrics file about training.
+#[derive(Serialize)]
+struct UpdateLine {
+    updates: u64,
+    steps_inserted: u64,
+    replay: usize,
+    critic_loss: f64,
+    actor_loss: f64,
+    mean_q: f64,
+    update_ms: f64,
+    insert_rate: f64,
+    sample_rate: f64,
+    limiter: &'static str,
+}
+
+/// Counters at the last rate measurement.
+struct RateMark {
+    at: Instant,
+    steps_inserted: u64,
+    updates: u64,
+}
+
+/// TD3 fed from the shared replay.
+pub struct Trainer {
+    shared: Arc<LearnerState>,
+    td3: Td3,
+    renderer: Renderer,
+    device: Device,
+    sampler: SplitMix64,
+    file: LearnerFile,
+    checkpoints: Checkpoints,
+    sums: Sums,
+    mark: RateMark,
+    last_checkpoint: Instant,
+}
+
+impl Trainer {
+    /// Fresh networks, or the state of `resumed`, training on `device`.
+    pub fn new(
+        file: &LearnerFile,
+        shared: Arc<LearnerState>,
+        checkpoints: Checkpoints,
+        resumed: Option<&Loaded>,
+        device: &Device,
+    ) -> anyhow::Result<Self> {
+        let config = &file.learner;
+        let renderer = Renderer::for_config(&file.env)?;
+        let device = device.clone().autodiff();
+        device.seed(config.seed);
+        let (h, w) = (renderer.height(), renderer.width());
+        let mut td3 = Td3::new(config.td3.clone(), h, w, &device)?;
+        let mut sampler = SplitMix64::derived(config.seed, 0x5a3_91e);
+        if let Some(loaded) = resumed {
+            let header = &loaded.header;
+            if header.resolution != [h, w] {
+                bail!(
+                    "checkpoint {} was trained on {}x{} images, the config renders {w}x{h}",
+                    loaded.path.display(),
+                    header.resolution[1],
+                    header.resolution[0]
+                );
+            }
+            td3.load_state(|name| loaded.part(name), header.updates)
+                .with_context(|| format!("checkpoint {}", loaded.path.display()))?;
+            sampler = SplitMix64::new(header.sampler_state);
+        }
+        shared.training().updates = td3.updates();
+        Ok(Self {
+            mark: RateMark {
+                at: Instant::now(),
+                steps_inserted: shared.steps_inserted(),
+                updates: td3.updates(),
+            },
+            shared,
+            td3,
+            renderer,
+            device,
+            sampler,
+            file: file.clone(),
+            checkpoints,
+            sums: Sums::default(),
+            last_checkpoint: Instant::now(),
+        })
+    }
+
+    /// Trains until the shared state says stop, then writes a final
+    /// checkpoint. An error (a diverged loss, a full disk) ends training.
+    pub fn run(mut self) -> anyhow::Result<()> {
+        let has_snapshot = self
+            .shared
+            .snapshots()
+            .is_some_and(|s| s.latest_version() > 0);
+        if !has_snapshot {
+            self.publish()?;
+        }
+        let result = self.train();
+        let last = self.checkpoint();
+        result.and(last.map(|_| ()))
+    }
+
+    fn train(&mut self) -> anyhow::Result<()> {
+        let config = self.file.learner.clone();
+        let every_checkpoint = Duration::from_secs_f64(config.checkpoints.every_seconds);
+        while !self.shared.stopping() {
+            if self.shared.take_checkpoint_request() {
+                self.checkpoint()?;
+            }
+            if self.shared.paused() {
+                std::thread::sleep(Duration::from_millis(20));
+                continue;
+            }
+            let may_update = self
+                .shared
+                .limiter()
+                .is_some_and(|l| l.wait_to_update(Duration::from_millis(100)));
+            if may_update {
+                self.update()?;
+                let updates = self.td3.updates();
+                if updates.is_multiple_of(config.metrics_every_updates) {
+                    self.report();
+                }
+                if updates.is_multiple_of(config.snapshots.every_updates) {
+                    self.publish()?;
+                }
+            } else if self.mark.at.elapsed() >= Duration::from_secs(2) {
+                self.measure_rates();
+            }
+            if !every_checkpoint.is_zero() && self.last_checkpoint.elapsed() >= every_checkpoint {
+                self.checkpoint()?;
+            }
+        }
+        Ok(())
+    }
+
+    /// One update on a uniformly sampled batch.
+    fn update(&mut self) -> anyhow::Result<UpdateStats> {
+        let _span = tracing::debug_span!("update", n = self.td3.updates() + 1).entered();
+        let started = Instant::now();
+        let sampled = self
+            .shared
+            .replay()
+            .sample(self.file.learner.batch_size, &mut self.sampler)?;
+        let batch = minibatch_tensors(&sampled, &self.renderer, &self.device);
+        let stats = self.td3.update(batch);
+        if let Some(limiter) = self.shared.limiter() {
+            limiter.updated();
+        }
+        if !(stats.critic_loss.is_finite() && stats.mean_q.is_finite()) {
+            bail!(
+                "training diverged at update {}: critic loss {}, mean Q {}; the last checkpoint is intact",
+                self.td3.updates(),
+                stats.critic_loss,
+                stats.mean_q
+            );
+        }
+        let s = &mut self.sums;
+        s.n += 1;
+        s.critic_loss += stats.critic_loss;
+        s.mean_q += stats.mean_q;
+        let seconds = started.elapsed().as_secs_f64();
+        s.update_ms += seconds * 1e3;
+        self.shared.timings().update_seconds.observe(seconds);
+        if let Some(a) = stats.actor_loss {
+            s.actor_loss += a;
+            s.actor_n += 1;
+        }
+        self.shared.training().updates = self.td3.updates();
+        Ok(stats)
+    }
+
+    /// Insert and sample rates since the last measurement, into status.
+    fn measure_rates(&mut self) -> (f64, f64) {
+        let now = Instant::now();
+        let seconds = now.duration_since(self.mark.at).as_secs_f64().max(1e-9);
+        let (inserted, updates) = (self.shared.steps_inserted(), self.td3.updates());
+        let insert_rate = (inserted - self.mark.steps_inserted) as f64 / seconds;
+        let sample_rate =
+            ((updates - self.mark.updates) * self.file.learner.batch_size as u64) as f64 / seconds;
+        self.mark = RateMark {
+            at: now,
+            steps_inserted: inserted,
+            updates,
+        };
+        let mut training = self.shared.training();
+        training.insert_rate = insert_rate;
+        training.sample_rate = sample_rate;
+        (insert_rate, sample_rate)
+    }
+
+    /// Means since the last report, into status and the metrics file.
+    fn report(&mut self) {
+        let (insert_rate, sample_rate) = self.measure_rates();
+        let s = std::mem::take(&mut self.sums);
+        let n = s.n.max(1) as f64;
+        let line = UpdateLine {
+            updates: self.td3.updates(),
+            steps_inserted: self.shared.steps_inserted(),
+            replay: self.shared.replay().len(),
+            critic_loss: s.critic_loss / n,
+            actor_loss: s.actor_loss / s.actor_n.max(1) as f64,
+            mean_q: s.mean_q / n,
+            update_ms: s.update_ms / n,
+            insert_rate,
+            sample_rate,
+            limiter: limiter_state_name(self.shared.limiter_state()),
+        };
+        {
+            let mut training = self.shared.training();
+            training.critic_loss = line.critic_loss;
+            training.actor_loss = line.actor_loss;
+            training.mean_q = line.mean_q;
+        }
+        tracing::info!(
+            updates = line.updates,
+            steps = line.steps_inserted,
+            critic_loss = line.critic_loss,
+            mean_q = line.mean_q,
+            update_ms = line.update_ms,
+            "training"
+        );
+        self.shared.run_log().write("update", line);
+    }
+
+    /// Publishes the current policy as the next snapshot version.
+    fn publish(&mut self) -> anyhow::Result<()> {
+        let _span = tracing::info_span!("publish").entered();
+        let rolling = self.shared.episodes().rolling();
+        let rolling_return = (rolling.episodes > 0).then_some(rolling.mean_return);
+        let Some(mut snapshots) = self.shared.snapshots() else {
+            return Ok(());
+        };
+        let info = SnapshotInfo {
+            architecture: ARCHITECTURE.into(),
+            height: self.renderer.height(),
+            width: self.renderer.width(),
+            version: snapshots.next_version(),
+            training_step: self.td3.updates(),
+        };
+        let bytes = encode(&self.td3.policy(), &info);
+        let (published, best) = snapshots.publish(bytes, rolling_return)?;
+        drop(snapshots);
+        tracing::info!(
+            version = published.info.version,
+            updates = info.training_step,
+            rolling_return,
+            best,
+            "snapshot published"
+        );
+        #[derive(Serialize)]
+        struct SnapshotLine {
+            version: u64,
+            updates: u64,
+            rolling_return: Option<f64>,
+            rolling_success_rate: f64,
+            episodes: usize,
+            best: bool,
+        }
+        self.shared.run_log().write(
+            "snapshot",
+            SnapshotLine {
+                version: published.info.version,
+                updates: info.training_step,
+                rolling_return,
+                rolling_success_rate: rolling.success_rate,
+                episodes: rolling.episodes,
+                best,
+            },
+        );
+        Ok(())
+    }
+
+    /// Writes a checkpoint of everything training needs to go on.
+    pub fn checkpoint(&mut self) -> anyhow::Result<PathBuf> {
+        let _span = tracing::info_span!("checkpoint").entered();
+        let started = Instant::now();
+        let captured = self.shared.capture(self.file.learner.checkpoints.replay);
+        let header = CheckpointHeader {
+            updates: self.td3.updates(),
+            steps_inserted: captured.steps_inserted,
+            sampler_state: self.sampler.state(),
+            resolution: [self.renderer.height(), self.renderer.width()],
+            episodes: captured.episodes,
+            snapshots: self
+                .shared
+                .snapshots()
+                .map(|s| s.state())
+                .unwrap_or_default(),
+            actors: captured.actors,
+            parts: Vec::new(),
+        };
+        let mut parts = self.td3.save_state()?;
+        if let Some(replay) = captured.replay {
+            parts.push(("replay", replay));
+        }
+        let path = self.checkpoints.write(header, &parts)?;
+        self.last_checkpoint = Instant::now();
+        self.shared.checkpoint_written(path.clone());
+        let seconds = started.elapsed().as_secs_f64();
+        tracing::info!(path = %path.display(), seconds, "checkpoint written");
+        #[derive(Serialize)]
+        struct CheckpointLine<'a> {
+            path: &'a std::path::Path,
+            updates: u64,
+            seconds: f64,
+        }
+        self.shared.run_log().write(
+            "checkpoint",
+            CheckpointLine {
+                path: &path,
+                updates: self.td3.updates(),
+                seconds,
+            },
+        );
+        Ok(path)
+    }
+}

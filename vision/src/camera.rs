@@ -1,0 +1,108 @@
+//! Cameras: a grayscale frame type and the [`Camera`] trait the control loop
+//! grabs frames through, with a backend that replays frames from files
+//! ([`ReplayCamera`]); the digital twin's camera lives in the hardware
+//! agent.
+
+mod files;
+mod replay;
+
+pub use files::{read_frame, write_frame};
+pub use replay::ReplayCamera;
+
+use std::path::PathBuf;
+
+/// One grayscale camera frame, row-major, x right and y down.
+#[derive(Clone, Debug, PartialEq)]
+pub struct GrayFrame {
+    width: usize,
+    height: usize,
+    /// The largest value a pixel can take (255 for 8-bit frames, 4095 for
+    /// 12-bit, 65535 for 16-bit).
+    max_value: u16,
+    pixels: Vec<u16>,
+}
+
+impl GrayFrame {
+    /// A frame of `width` x `height` pixels; `None` if the pixel count does
+    /// not match or a pixel exceeds `max_value`.
+    pub fn new(width: usize, height: usize, max_value: u16, pixels: Vec<u16>) -> Option<Self> {
+        (width > 0
+            && height > 0
+            && pixels.len() == width * height
+            && pixels.iter().all(|&p| p <= max_value))
+        .then_some(Self {
+            width,
+            height,
+            max_value,
+            pixels,
+        })
+    }
+
+    /// Width in pixels.
+    pub fn width(&self) -> usize {
+        self.width
+    }
+
+    /// Height in pixels.
+    pub fn height(&self) -> usize {
+        self.height
+    }
+
+    /// The largest value a pixel can take.
+    pub fn max_value(&self) -> u16 {
+        self.max_value
+    }
+
+    /// The pixels, row after row.
+    pub fn pixels(&self) -> &[u16] {
+        &self.pixels
+    }
+}
+
+/// Why a camera gave no frame.
+#[derive(Debug, thiserror::Error)]
+pub enum CameraError {
+    /// A frame file could not be read.
+    #[error("cannot read frame {path}: {reason}")]
+    Read {
+        /// The file.
+        path: PathBuf,
+        /// What went wrong.
+        reason: String,
+    },
+    /// A frame file could not be written.
+    #[error("cannot write frame {path}: {reason}")]
+    Write {
+        /// The file.
+        path: PathBuf,
+        /// What went wrong.
+        reason: String,
+    },
+    /// A frame has a size other than the camera's.
+    #[error("frame {what} is {got:?} px, the camera's frames are {want:?} px")]
+    Size {
+        /// Which frame.
+        what: String,
+        /// Its width and height.
+        got: [usize; 2],
+        /// The expected width and height.
+        want: [usize; 2],
+    },
+    /// A replayed sequence has no more frames.
+    #[error("no more frames in {0} (replayed once; set `loop = true` to repeat)")]
+    Exhausted(PathBuf),
+    /// No frame came within the allowed time.
+    #[error("the camera gave no frame within {0:?}")]
+    Stalled(std::time::Duration),
+}
+
+/// A source of frames: a real camera SDK, a replayed directory, or the
+/// digital twin. `grab` returns the newest frame, waiting for one if none
+/// has arrived since the last call.
+pub trait Camera: Send {
+    /// Width and height of every frame, px.
+    fn size(&self) -> [usize; 2];
+
+    /// The next frame.
+    fn grab(&mut self) -> Result<GrayFrame, CameraError>;
+}
