@@ -4,7 +4,8 @@
 
 use serde_json::Value;
 use tweezer_system_tests::{
-    TINY_ENV, credentials, run, start_learner, stderr_of_failure, stdout_of, stop, write,
+    AGENT_CONTROL, TINY_ENV, credentials, run, start_learner, stderr_of_failure, stdout_of, stop,
+    write,
 };
 
 #[test]
@@ -28,7 +29,8 @@ fn the_agent_drives_the_twin_with_a_learner_snapshot_and_refuses_what_does_not_f
             &format!(
                 "[env]\nmin_free_spheres = 0\nmax_free_spheres = 0\ntime_limit = 8\n\
                  [env.image]\nwidth = {}\nheight = {}\n\
-                 [policy]\nsource = \"learner\"\nlearner = \"{addr}\"\nsnapshot = {snapshot:?}\n",
+                 [policy]\nsource = \"learner\"\nlearner = \"{addr}\"\nsnapshot = {snapshot:?}\n\
+                 {AGENT_CONTROL}",
                 image[0], image[1]
             ),
         );

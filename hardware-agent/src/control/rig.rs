@@ -177,14 +177,10 @@ impl<C: Camera, P: Read + Write + Send + 'static> Rig<C, P> {
         let mut observation = Observation::default();
         let mut action = [Action::ZERO];
         loop {
-            match halt.wait_until(next) {
-                Some(HaltKind::Stop) => return Ending::Stopped,
-                Some(HaltKind::Emergency(reason)) => return Ending::EmergencyStopped(reason),
-                None => {}
-            }
+            halt.wait_until(next);
             let tick = Instant::now();
-            if self.watchdog.take_tripped() {
-                return Ending::Fault("the watchdog stopped the stages: the loop stalled".into());
+            if let Some(ending) = self.interrupted(halt) {
+                return ending;
             }
             if tick > next + margin {
                 return Ending::Fault(format!(
@@ -270,8 +266,19 @@ impl<C: Camera, P: Read + Write + Send + 'static> Rig<C, P> {
             let policy_ms = thinking.elapsed().as_secs_f64() * 1000.0;
             let [ax, ay] = action[0].components();
             let velocity = [f64::from(ax) * speed, f64::from(ay) * speed];
+            // A stall in this step may have tripped the watchdog, or a stop
+            // come: then the stages stay as they were stopped. Checked again
+            // after the command: whoever stops records the request before
+            // stopping, so a request this second check misses is followed
+            // by its own stop, after the command.
+            if let Some(ending) = self.interrupted(halt) {
+                return ending;
+            }
             if let Err(e) = self.stages.set_velocity_px(velocity) {
                 return Ending::Fault(e.to_string());
+            }
+            if let Some(ending) = self.interrupted(halt) {
+                return ending;
             }
             let latency_ms = frame_in.elapsed().as_secs_f64() * 1000.0;
             progress.latencies.push(latency_ms);
@@ -290,6 +297,21 @@ impl<C: Camera, P: Read + Write + Send + 'static> Rig<C, P> {
             });
             progress.steps += 1;
             next += period;
+        }
+    }
+}
+
+impl<C, P: Read + Write> Rig<C, P> {
+    /// How the episode ends if a halt was requested (an emergency stop
+    /// outranks the rest) or the watchdog has tripped.
+    fn interrupted(&self, halt: &Halt) -> Option<Ending> {
+        match halt.pending() {
+            Some(HaltKind::Emergency(reason)) => Some(Ending::EmergencyStopped(reason)),
+            Some(HaltKind::Stop) => Some(Ending::Stopped),
+            None => self
+                .watchdog
+                .take_tripped()
+                .then(|| Ending::Fault("the watchdog stopped the stages: the loop stalled".into())),
         }
     }
 }

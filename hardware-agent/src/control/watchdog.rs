@@ -13,7 +13,7 @@ use std::time::{Duration, Instant};
 const POLL: Duration = Duration::from_millis(2);
 
 #[derive(Debug, Default)]
-struct Shared {
+struct WatchdogState {
     deadline: Mutex<Option<Instant>>,
     tripped: AtomicBool,
     quit: AtomicBool,
@@ -22,14 +22,14 @@ struct Shared {
 /// A running watchdog; it stops when dropped.
 #[derive(Debug)]
 pub struct Watchdog {
-    shared: Arc<Shared>,
+    shared: Arc<WatchdogState>,
     thread: Option<JoinHandle<()>>,
 }
 
 impl Watchdog {
     /// Watches with `stopper` in hand; disarmed until [`Watchdog::arm`].
     pub fn spawn<P: Write + Send + 'static>(stopper: Stopper<P>) -> std::io::Result<Self> {
-        let shared = Arc::new(Shared::default());
+        let shared = Arc::new(WatchdogState::default());
         let thread = std::thread::Builder::new().name("watchdog".into()).spawn({
             let shared = shared.clone();
             move || {
@@ -38,8 +38,11 @@ impl Watchdog {
                     let mut deadline = shared.deadline.lock().unwrap_or_else(|p| p.into_inner());
                     if deadline.is_some_and(|d| Instant::now() > d) {
                         *deadline = None;
-                        let _ = stopper.stop_now();
+                        // Tripped before the stop goes out: a loop that
+                        // checks after each command then never leaves the
+                        // motors running after this stop.
                         shared.tripped.store(true, Ordering::SeqCst);
+                        let _ = stopper.stop_now();
                         tracing::error!(
                             "watchdog: the control loop missed its deadline; stages stopped"
                         );

@@ -132,17 +132,19 @@ impl HardwareAgent for AgentService {
         &self,
         request: Request<pb::EmergencyStopRequest>,
     ) -> Result<Response<pb::AgentStatus>, RpcStatus> {
-        // The motors first, from here: the loop may be anywhere.
-        let sent = self.shared.stopper.stop_now();
         let mut reason: String = request.into_inner().reason;
         reason.truncate(reason.floor_char_boundary(MAX_REASON));
         if reason.is_empty() {
             reason = "emergency stop".into();
         }
-        tracing::warn!(%reason, sent = sent.is_ok(), "emergency stop");
+        // The request first, then the motors, from here: the loop may be
+        // anywhere, and it checks for the request after every command, so
+        // no command of its can follow this stop unseen.
         self.shared
             .halt
             .request(HaltKind::Emergency(reason.clone()));
+        let sent = self.shared.stopper.stop_now();
+        tracing::warn!(%reason, sent = sent.is_ok(), "emergency stop");
         {
             let mut status = self.shared.status();
             status.state = State::EmergencyStopped;
