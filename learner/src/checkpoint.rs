@@ -17,8 +17,8 @@ use crate::episodes::Episodes;
 use crate::snapshots::SnapshotsState;
 use serde::{Deserialize, Serialize};
 use sha2::{Digest, Sha256};
-use std::collections::BTreeMap;
-use std::io::{self, Write};
+use std::collections::{BTreeMap, BTreeSet};
+use std::io::{self, Read, Write};
 use std::ops::Range;
 use std::path::{Path, PathBuf};
 
@@ -166,14 +166,39 @@ impl Checkpoints {
     /// The newest checkpoint that reads back whole, with the reasons the
     /// newer ones were skipped; `None` when there is no usable one.
     pub fn newest_valid(&self) -> Result<(Option<Loaded>, Vec<CheckpointError>), CheckpointError> {
+        self.newest_usable(|_| Ok(()))
+    }
+
+    /// The newest checkpoint that reads back whole and that `usable`
+    /// accepts (everything else it needs is there), with the reasons the
+    /// newer ones were skipped; `None` when there is no usable one.
+    pub fn newest_usable(
+        &self,
+        mut usable: impl FnMut(&Loaded) -> Result<(), String>,
+    ) -> Result<(Option<Loaded>, Vec<CheckpointError>), CheckpointError> {
         let mut skipped = Vec::new();
         for path in self.list()? {
             match read(&path) {
-                Ok(loaded) => return Ok((Some(loaded), skipped)),
+                Ok(loaded) => match usable(&loaded) {
+                    Ok(()) => return Ok((Some(loaded), skipped)),
+                    Err(reason) => skipped.push(CheckpointError::Corrupt { path, reason }),
+                },
                 Err(e) => skipped.push(e),
             }
         }
         Ok((None, skipped))
+    }
+
+    /// The snapshot versions the kept checkpoints need on disk (each one's
+    /// latest and best): pruning must spare them. Checkpoints whose header
+    /// cannot be read need nothing.
+    pub fn needed_snapshots(&self) -> BTreeSet<u64> {
+        let files = self.list().unwrap_or_default();
+        files
+            .iter()
+            .filter_map(|path| read_header(path).ok())
+            .flat_map(|header| header.snapshots.needed())
+            .collect()
     }
 
     fn prune(&self, newest: &Path) {
@@ -188,6 +213,35 @@ impl Checkpoints {
             let _ = sync_dir(&self.dir);
         }
     }
+}
+
+/// The longest header [`read_header`] reads.
+const MAX_HEADER: u64 = 64 << 20;
+
+/// Reads one checkpoint's header alone, without verifying the file (a
+/// quick look; [`read`] verifies).
+pub fn read_header(path: &Path) -> Result<CheckpointHeader, CheckpointError> {
+    let corrupt = |reason: String| CheckpointError::Corrupt {
+        path: path.into(),
+        reason,
+    };
+    let io_error = |source| CheckpointError::Io {
+        path: path.into(),
+        source,
+    };
+    let mut file = std::fs::File::open(path).map_err(io_error)?;
+    let mut head = [0u8; 16];
+    file.read_exact(&mut head).map_err(io_error)?;
+    if &head[..MAGIC.len()] != MAGIC {
+        return Err(corrupt("not a checkpoint file".into()));
+    }
+    let len = u64::from_le_bytes(head[8..].try_into().expect("8 bytes"));
+    if len > MAX_HEADER {
+        return Err(corrupt(format!("a header of {len} bytes")));
+    }
+    let mut json = vec![0; len as usize];
+    file.read_exact(&mut json).map_err(io_error)?;
+    serde_json::from_slice(&json).map_err(|e| corrupt(format!("header: {e}")))
 }
 
 /// Reads and verifies one checkpoint file.

@@ -55,8 +55,10 @@ pub fn serve(file: LearnerFile, start: Start, security: &Security) -> anyhow::Re
         Start::Resume => true,
         Start::Auto => !checkpoints.list()?.is_empty(),
     };
-    let resumed = if resume {
-        Some(newest_checkpoint(&checkpoints, run_dir)?)
+    let keep = config.snapshots.keep;
+    let (resumed, snapshots) = if resume {
+        let (loaded, snapshots) = newest_checkpoint(&checkpoints, run_dir, keep)?;
+        (Some(loaded), snapshots)
     } else {
         if !checkpoints.list()?.is_empty() {
             bail!(
@@ -66,9 +68,12 @@ pub fn serve(file: LearnerFile, start: Start, security: &Security) -> anyhow::Re
         }
         write_bytes_atomic(&run_dir.config(), file.to_toml().as_bytes())
             .context("cannot write the run's config.toml")?;
-        None
+        (None, Snapshots::create(&run_dir.snapshots(), keep)?)
     };
-    let shared = Arc::new(shared_state(&file, run_dir, resumed.as_ref())?);
+    let shared = Arc::new(shared_state(&file, run_dir, resumed.as_ref(), snapshots)?);
+    if let Some(mut snapshots) = shared.snapshots() {
+        snapshots.pin(checkpoints.needed_snapshots());
+    }
     let device = config.device.device()?;
     let trainer = Trainer::new(
         &file,
@@ -149,9 +154,20 @@ pub fn serve(file: LearnerFile, start: Start, security: &Security) -> anyhow::Re
     })
 }
 
-/// The newest checkpoint that reads back, saying which were skipped.
-fn newest_checkpoint(checkpoints: &Checkpoints, run_dir: &RunDir) -> anyhow::Result<Loaded> {
-    let (loaded, skipped) = checkpoints.newest_valid()?;
+/// The newest checkpoint that reads back whole and whose snapshots read
+/// back too, with its snapshots restored; says which were skipped.
+fn newest_checkpoint(
+    checkpoints: &Checkpoints,
+    run_dir: &RunDir,
+    keep: usize,
+) -> anyhow::Result<(Loaded, Snapshots)> {
+    let mut snapshots = None;
+    let (loaded, skipped) = checkpoints.newest_usable(|loaded| {
+        let restored = Snapshots::restore(&run_dir.snapshots(), keep, &loaded.header.snapshots)
+            .map_err(|e| format!("its snapshots do not read back: {e}"))?;
+        snapshots = Some(restored);
+        Ok(())
+    })?;
     for error in &skipped {
         tracing::warn!(%error, "skipping an unusable checkpoint");
     }
@@ -168,16 +184,18 @@ fn newest_checkpoint(checkpoints: &Checkpoints, run_dir: &RunDir) -> anyhow::Res
         steps = loaded.header.steps_inserted,
         "resuming"
     );
-    Ok(loaded)
+    let snapshots = snapshots.expect("restored for the checkpoint accepted");
+    Ok((loaded, snapshots))
 }
 
-/// The replay, limiter, snapshots and counters: fresh, or as `resumed` left
-/// them. The limiter counts from the replay as restored, so a restored
+/// The replay, limiter, counters and `snapshots`: fresh, or as `resumed`
+/// left them. The limiter counts from the replay as restored, so a restored
 /// learner cannot wait on its own old counters.
 fn shared_state(
     file: &LearnerFile,
     run_dir: &RunDir,
     resumed: Option<&Loaded>,
+    snapshots: Snapshots,
 ) -> anyhow::Result<LearnerState> {
     let config = &file.learner;
     let replay = match resumed.and_then(|l| l.part("replay")) {
@@ -187,11 +205,6 @@ fn shared_state(
     let mut limiter = Limiter::new(config.limiter.clone());
     limiter.rebase(replay.len());
     let limiter = SharedLimiter::new(limiter, replay.len());
-    let snapshots_dir = run_dir.snapshots();
-    let snapshots = match resumed {
-        Some(l) => Snapshots::restore(&snapshots_dir, config.snapshots.keep, &l.header.snapshots)?,
-        None => Snapshots::create(&snapshots_dir, config.snapshots.keep)?,
-    };
     let run_log = RunLog::append(&run_dir.run_log())
         .with_context(|| format!("cannot open {}", run_dir.run_log().display()))?;
     let shared = LearnerState::new(

@@ -6,7 +6,7 @@
 
 use crate::durable_write::{link_atomic, write_bytes_atomic};
 use serde::{Deserialize, Serialize};
-use std::collections::VecDeque;
+use std::collections::{BTreeSet, VecDeque};
 use std::io;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
@@ -78,6 +78,14 @@ pub struct SnapshotsState {
     pub best: Option<(u64, f64)>,
 }
 
+impl SnapshotsState {
+    /// The versions a learner restored from this state reads back: its
+    /// latest and its best.
+    pub fn needed(&self) -> impl Iterator<Item = u64> + use<> {
+        self.latest.into_iter().chain(self.best.map(|(v, _)| v))
+    }
+}
+
 /// The run's snapshots.
 #[derive(Debug)]
 pub struct Snapshots {
@@ -86,6 +94,8 @@ pub struct Snapshots {
     kept: VecDeque<u64>,
     latest: Option<Arc<Published>>,
     best: Option<(Arc<Published>, f64)>,
+    /// Versions that kept checkpoints need: never pruned.
+    pinned: BTreeSet<u64>,
 }
 
 impl Snapshots {
@@ -102,6 +112,7 @@ impl Snapshots {
             kept: VecDeque::new(),
             latest: None,
             best: None,
+            pinned: BTreeSet::new(),
         })
     }
 
@@ -193,12 +204,20 @@ impl Snapshots {
         Ok((published, is_best))
     }
 
-    /// Deletes the oldest files beyond `keep`, never the best's.
+    /// Spares `versions` (those the kept checkpoints need) from pruning
+    /// from now on, instead of the ones pinned before.
+    pub fn pin(&mut self, versions: BTreeSet<u64>) {
+        self.pinned = versions;
+    }
+
+    /// Deletes the oldest files beyond `keep`, never the best's nor a
+    /// pinned one.
     fn prune(&mut self) {
         let best = self.best.as_ref().map(|(p, _)| p.info.version);
-        let others = |kept: &VecDeque<u64>| kept.iter().filter(|&&v| Some(v) != best).count();
-        while others(&self.kept) > self.keep {
-            let Some(position) = self.kept.iter().position(|&v| Some(v) != best) else {
+        let prunable = |v: u64| Some(v) != best && !self.pinned.contains(&v);
+        let count = |kept: &VecDeque<u64>| kept.iter().filter(|&&v| prunable(v)).count();
+        while count(&self.kept) > self.keep {
+            let Some(position) = self.kept.iter().position(|&v| prunable(v)) else {
                 break;
             };
             if let Some(version) = self.kept.remove(position) {

@@ -323,6 +323,11 @@ impl Trainer {
             parts.push(("replay", replay));
         }
         let path = self.checkpoints.write(header, &parts)?;
+        // The snapshots the kept checkpoints need stay on disk until no
+        // kept checkpoint needs them.
+        if let Some(mut snapshots) = self.shared.snapshots() {
+            snapshots.pin(self.checkpoints.needed_snapshots());
+        }
         self.last_checkpoint = Instant::now();
         self.shared.checkpoint_written(path.clone());
         let seconds = started.elapsed().as_secs_f64();

@@ -73,3 +73,67 @@ fn the_best_is_kept_while_older_versions_are_pruned() {
         store.get(Selector::Latest).unwrap().sha256
     );
 }
+
+/// The learner's own sequence: a checkpoint of the store, then more
+/// snapshots than it keeps. The checkpoint's snapshots must survive, so
+/// that it can be resumed after a SIGKILL; once no kept checkpoint needs
+/// them they are pruned as usual. A checkpoint whose snapshots are gone is
+/// passed over for an older one.
+#[test]
+fn snapshots_a_kept_checkpoint_needs_are_never_pruned() {
+    use tweezer_learner::checkpoint::{CheckpointHeader, Checkpoints};
+    let dir = tempfile::tempdir().unwrap();
+    let snapshots_dir = dir.path().join("snapshots");
+    let checkpoints = Checkpoints::open(&dir.path().join("checkpoints"), 3).unwrap();
+    let mut store = Snapshots::create(&snapshots_dir, 2).unwrap();
+    let publish = |store: &mut Snapshots| {
+        let version = store.next_version();
+        store.publish(snapshot(version), None).unwrap();
+    };
+    let checkpoint = |store: &mut Snapshots, updates: u64| {
+        let header = CheckpointHeader {
+            updates,
+            snapshots: store.state(),
+            ..CheckpointHeader::default()
+        };
+        checkpoints.write(header, &[]).unwrap();
+        store.pin(checkpoints.needed_snapshots());
+    };
+    publish(&mut store);
+    publish(&mut store);
+    checkpoint(&mut store, 1);
+    let at_checkpoint = store.state();
+    assert_eq!(at_checkpoint.latest, Some(2));
+    for _ in 0..4 {
+        publish(&mut store);
+    }
+    // Versions 3 and 4 went; 2 stays for the checkpoint, 5 and 6 are kept.
+    let on_disk = |v: u64| snapshots_dir.join(format!("v{v:06}.safetensors")).exists();
+    assert_eq!(
+        (1..=6).map(on_disk).collect::<Vec<_>>(),
+        [false, true, false, false, true, true]
+    );
+    let restored = Snapshots::restore(&snapshots_dir, 2, &at_checkpoint).unwrap();
+    assert_eq!(restored.latest_version(), 2);
+
+    // Once three newer checkpoints are kept, version 2 is pruned as usual.
+    for updates in 2..=4 {
+        checkpoint(&mut store, updates);
+    }
+    publish(&mut store);
+    assert!(!on_disk(2));
+
+    // A checkpoint whose snapshots are gone is passed over for an older one.
+    std::fs::remove_file(snapshots_dir.join("v000007.safetensors")).unwrap();
+    checkpoint(&mut store, 5);
+    let (usable, skipped) = checkpoints
+        .newest_usable(|loaded| {
+            Snapshots::restore(&snapshots_dir, 2, &loaded.header.snapshots)
+                .map(drop)
+                .map_err(|e| e.to_string())
+        })
+        .unwrap();
+    assert_eq!(usable.unwrap().header.updates, 4);
+    assert_eq!(skipped.len(), 1);
+    assert!(skipped[0].to_string().contains("v000007"), "{}", skipped[0]);
+}

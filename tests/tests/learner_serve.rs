@@ -427,6 +427,50 @@ async fn resumes_from_the_newest_whole_checkpoint() {
     assert!(log.contains("checksum mismatch"), "{log}");
 }
 
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_sigkill_after_more_snapshots_than_kept_since_the_checkpoint_leaves_the_run_resumable() {
+    let (dir, run, config) = run_dir();
+    // A snapshot every 100 updates (two kept besides the best).
+    let tiny = std::fs::read_to_string(&config).unwrap();
+    std::fs::write(
+        &config,
+        tiny.replace("every_updates = 500", "every_updates = 100"),
+    )
+    .unwrap();
+    let learner = Learner::fresh(dir.path(), &config, &run);
+    feed(&learner, "actor-0", 150).await;
+
+    // A checkpoint, taken while learning is paused so that no snapshot is
+    // published in between: it needs the latest snapshot of that moment.
+    let mut control = LearnerClient::new(connect(&learner.addr, "control").await);
+    control
+        .pause_learning(pb::PauseLearningRequest {})
+        .await
+        .unwrap();
+    control.checkpoint(pb::CheckpointRequest {}).await.unwrap();
+    let at_checkpoint = learner.status().await;
+    control
+        .resume_learning(pb::ResumeLearningRequest {})
+        .await
+        .unwrap();
+
+    // Then more snapshots than the learner keeps, and a SIGKILL: no final
+    // checkpoint.
+    feed(&learner, "actor-1", at_checkpoint.updates + 400).await;
+    let newest = learner.status().await.latest_snapshot;
+    assert!(newest >= at_checkpoint.latest_snapshot + 3, "v{newest}");
+    drop(learner);
+
+    // The run resumes from that checkpoint, its snapshot read back.
+    let learner = Learner::start(dir.path(), &["--resume", run.to_str().unwrap()]);
+    let resumed = learner.status().await;
+    assert_eq!(resumed.latest_snapshot, at_checkpoint.latest_snapshot);
+    assert_eq!(resumed.steps_inserted, at_checkpoint.steps_inserted);
+    let (exit, log) = learner.stop();
+    assert!(exit.success(), "{log}");
+    assert!(log.contains("resuming"), "{log}");
+}
+
 #[test]
 fn a_bad_config_is_refused_naming_the_field() {
     let dir = tempfile::tempdir().unwrap();
