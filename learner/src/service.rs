@@ -8,7 +8,7 @@ use crate::snapshots::{Published, Selector, SnapshotsError};
 use std::pin::Pin;
 use std::sync::Arc;
 use tokio_stream::Stream;
-use tonic::{Request, Response, Status, Streaming};
+use tonic::{Code, Request, Response, Status, Streaming};
 use tweezer_proto::pb;
 use tweezer_proto::pb::learner_server::Learner;
 
@@ -77,7 +77,22 @@ impl Learner for LearnerService {
                 let batch = tokio::select! {
                     message = inbound.message() => match message {
                         Ok(Some(batch)) => batch,
-                        _ => break,
+                        Ok(None) => break,
+                        Err(status) => {
+                            if let Some(refusal) = unreadable_batch(&status) {
+                                shared.count_malformed();
+                                tracing::warn!(
+                                    actor = actor.as_deref().unwrap_or("(not yet known)"),
+                                    code = ?refusal.code(),
+                                    message = refusal.message(),
+                                    "refused an unreadable step batch"
+                                );
+                                let _ = tx.send(Err(refusal)).await;
+                            } else {
+                                tracing::debug!(%status, "an actor's stream ended uncleanly");
+                            }
+                            break;
+                        }
                     },
                     () = shared.stopped() => {
                         let _ = tx.send(Err(Status::unavailable("the learner is shutting down"))).await;
@@ -244,6 +259,25 @@ impl LearnerService {
             ));
         }
         Ok(())
+    }
+}
+
+/// The answer to an error reading an actor's stream when it is the batch
+/// that cannot be read (not protobuf, or larger than the learner takes);
+/// `None` when the stream itself broke (the actor went away).
+fn unreadable_batch(status: &Status) -> Option<Status> {
+    match status.code() {
+        // tonic's decoder answers INTERNAL for bytes that are not a
+        // StepBatch.
+        Code::Internal => Some(Status::invalid_argument(format!(
+            "the message is not a StepBatch: {}",
+            status.message()
+        ))),
+        Code::OutOfRange | Code::ResourceExhausted => Some(Status::resource_exhausted(format!(
+            "the StepBatch is larger than this learner takes: {}",
+            status.message()
+        ))),
+        _ => None,
     }
 }
 

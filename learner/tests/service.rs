@@ -223,3 +223,93 @@ async fn a_producer_held_by_back_pressure_is_released_when_its_actor_goes() {
     }
     assert_eq!(shared.steps_inserted(), 20, "the held batch was not stored");
 }
+
+/// Sends each message's bytes as they are: what a client that does not
+/// speak protobuf, or sends more than a learner takes, puts on the wire.
+#[derive(Clone, Copy, Default)]
+struct RawBytes;
+
+struct RawEncoder;
+
+impl tonic::codec::Encoder for RawEncoder {
+    type Item = Vec<u8>;
+    type Error = tonic::Status;
+
+    fn encode(
+        &mut self,
+        item: Vec<u8>,
+        dst: &mut tonic::codec::EncodeBuf<'_>,
+    ) -> Result<(), tonic::Status> {
+        bytes::BufMut::put_slice(dst, &item);
+        Ok(())
+    }
+}
+
+impl tonic::codec::Codec for RawBytes {
+    type Encode = Vec<u8>;
+    type Decode = pb::StepAck;
+    type Encoder = RawEncoder;
+    type Decoder =
+        <tonic_prost::ProstCodec<pb::StepBatch, pb::StepAck> as tonic::codec::Codec>::Decoder;
+
+    fn encoder(&mut self) -> RawEncoder {
+        RawEncoder
+    }
+
+    fn decoder(&mut self) -> Self::Decoder {
+        tonic::codec::Codec::decoder(
+            &mut tonic_prost::ProstCodec::<pb::StepBatch, pb::StepAck>::default(),
+        )
+    }
+}
+
+/// Opens `StreamSteps` on `client`'s learner and sends `message` as raw
+/// bytes; the first answer.
+async fn raw_stream_steps(addr: std::net::SocketAddr, message: Vec<u8>) -> tonic::Status {
+    let channel = tonic::transport::Endpoint::from_shared(format!("http://{addr}"))
+        .unwrap()
+        .connect()
+        .await
+        .unwrap();
+    let mut grpc = tonic::client::Grpc::new(channel);
+    grpc.ready().await.unwrap();
+    let path = http::uri::PathAndQuery::from_static("/tweezer.v1.Learner/StreamSteps");
+    let request = tonic::Request::new(tokio_stream::iter(vec![message]));
+    let mut answers = grpc
+        .streaming(request, path, RawBytes)
+        .await
+        .unwrap()
+        .into_inner();
+    match answers.message().await {
+        Err(status) => status,
+        Ok(answer) => panic!("the learner answered {answer:?}"),
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn unreadable_batches_are_refused_with_their_status_and_counted() {
+    let ingest = ingest();
+    let addr = serve(ingest.clone()).await.unwrap();
+
+    // Eight bytes that are not protobuf.
+    let status = raw_stream_steps(addr, vec![0xff; 8]).await;
+    assert_eq!(status.code(), Code::InvalidArgument, "{status:?}");
+    assert!(status.message().contains("not a StepBatch"), "{status:?}");
+    assert_eq!(ingest.malformed(), 1);
+
+    // More than gRPC's default 4 MiB in one message.
+    let status = raw_stream_steps(addr, vec![0; 5 << 20]).await;
+    assert_eq!(status.code(), Code::ResourceExhausted, "{status:?}");
+    assert!(status.message().contains("larger than"), "{status:?}");
+    assert_eq!(ingest.malformed(), 2);
+
+    // Nothing reached the replay, and a good batch still goes in.
+    assert_eq!(ingest.replay().len(), 0);
+    let mut client = LearnerClient::connect(format!("http://{addr}"))
+        .await
+        .unwrap();
+    let (tx, mut acks) = open(&mut client).await;
+    let batch = batches(&EnvConfig::default(), "actor-a", 1, 1, 8, 1).unwrap();
+    tx.send(batch[0].clone()).await.unwrap();
+    assert_eq!(acks.message().await.unwrap().unwrap().sequence, 0);
+}
