@@ -83,6 +83,11 @@ impl<P: Read + Write> Axis<P> {
         let Reply::Info(info) = stage.await_reply(|r| matches!(r, Reply::Info(_)))? else {
             unreachable!("await_reply returns what was asked for")
         };
+        // Z8 units and the one channel are the KDC101's: another model
+        // would be driven wrongly.
+        if !info.model.starts_with("KDC101") {
+            return Err(AptError::Model { model: info.model });
+        }
         stage.send(Command::Enable(CHANNEL, true))?;
         stage.send(Command::RequestEnabled(CHANNEL))?;
         match stage.await_reply(|r| matches!(r, Reply::Enabled(..)))? {
@@ -236,6 +241,12 @@ impl<P: Read + Write> Axis<P> {
                 Err(e) => return Err(e),
             };
             let reply = Reply::from_frame(&frame)?;
+            if let Some(channel) = reply.channel().filter(|&c| c != CHANNEL) {
+                return Err(AptError::Unexpected(format!(
+                    "{reply:?}: a reply for channel {}, the KDC101 has only channel {}",
+                    channel.0, CHANNEL.0
+                )));
+            }
             if wanted(&reply) {
                 return Ok(reply);
             }
@@ -426,5 +437,81 @@ mod tests {
                 }
             }
         }
+    }
+
+    /// A port that answers with `replies` whatever is written to it.
+    struct Scripted(VecDeque<u8>);
+
+    impl Scripted {
+        fn new(replies: &[Reply]) -> Self {
+            Self(replies.iter().flat_map(|r| r.to_frame().encode()).collect())
+        }
+    }
+
+    impl Write for Scripted {
+        fn write(&mut self, bytes: &[u8]) -> std::io::Result<usize> {
+            Ok(bytes.len())
+        }
+
+        fn flush(&mut self) -> std::io::Result<()> {
+            Ok(())
+        }
+    }
+
+    impl Read for Scripted {
+        fn read(&mut self, buf: &mut [u8]) -> std::io::Result<usize> {
+            if self.0.is_empty() {
+                return Err(ErrorKind::TimedOut.into());
+            }
+            let n = buf.len().min(self.0.len());
+            for (slot, byte) in buf.iter_mut().zip(self.0.drain(..n)) {
+                *slot = byte;
+            }
+            Ok(n)
+        }
+    }
+
+    fn info(model: &str) -> Reply {
+        Reply::Info(HardwareInfo {
+            serial: 27_000_001,
+            model: model.into(),
+            firmware: "1.0.0".into(),
+            hardware_version: 1,
+            channels: 1,
+        })
+    }
+
+    fn connect_to(replies: &[Reply]) -> Result<Axis<Scripted>, AptError> {
+        let limits = AxisLimits {
+            min_mm: 0.5,
+            max_mm: 11.5,
+            max_speed_mm_s: 2.0,
+            acceleration_mm_s2: 4.0,
+            command_interval_s: 0.5,
+        };
+        let port = Scripted::new(replies);
+        Axis::connect(port, Z8Units::default(), limits, Duration::from_millis(20)).map(|(a, _)| a)
+    }
+
+    #[test]
+    fn another_controller_model_is_refused_at_connect() {
+        let err = connect_to(&[info("TDC001")]).err().expect("refused");
+        assert!(
+            matches!(&err, AptError::Model { model } if model == "TDC001"),
+            "{err}"
+        );
+        assert!(err.to_string().contains("not a KDC101"), "{err}");
+    }
+
+    #[test]
+    fn a_reply_for_another_channel_is_an_error() {
+        let mut axis = connect_to(&[
+            info("KDC101"),
+            Reply::Enabled(CHANNEL, true),
+            Reply::Position(Channel(2), 0),
+        ])
+        .unwrap();
+        let err = axis.position_mm().unwrap_err();
+        assert!(err.to_string().contains("channel 2"), "{err}");
     }
 }

@@ -25,6 +25,8 @@ pub enum Fault {
     Truncated,
     /// It replies with a message the driver never asked for.
     Unexpected,
+    /// It reports a fault instead of replying: a header-only HW_RESPONSE.
+    Failing,
 }
 
 /// State shared between the server thread and its owner.
@@ -179,5 +181,6 @@ fn faulty(fault: Option<Fault>, frame: &Frame) -> Option<Vec<u8>> {
         Some(Fault::Truncated) => Some(bytes[..bytes.len() / 2].to_vec()),
         // MOT_MOVE_HOMED: never asked for by the driver.
         Some(Fault::Unexpected) => Some(vec![0x44, 0x04, 0x01, 0x00, 0x01, 0x50]),
+        Some(Fault::Failing) => Some(vec![0x80, 0x00, 0x00, 0x00, 0x01, 0x50]),
     }
 }

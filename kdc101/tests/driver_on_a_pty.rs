@@ -80,8 +80,13 @@ fn the_driver_identifies_moves_reads_and_stops_the_twin_over_a_serial_port() {
 }
 
 #[test]
-fn a_silent_truncated_or_unexpected_reply_is_an_error_and_the_motor_stops() {
-    for fault in [Fault::Silent, Fault::Truncated, Fault::Unexpected] {
+fn a_silent_truncated_unexpected_or_failing_reply_is_an_error_and_the_motor_stops() {
+    for fault in [
+        Fault::Silent,
+        Fault::Truncated,
+        Fault::Unexpected,
+        Fault::Failing,
+    ] {
         let twin = twin();
         let mut stage = connect(&twin);
         stage.set_velocity(2.0).unwrap();
@@ -101,6 +106,12 @@ fn a_silent_truncated_or_unexpected_reply_is_an_error_and_the_motor_stops() {
             Fault::Unexpected => {
                 assert!(
                     matches!(error, AptError::Unexpected(_)),
+                    "{fault:?}: {error}"
+                );
+            }
+            Fault::Failing => {
+                assert!(
+                    matches!(error, AptError::Device { .. }),
                     "{fault:?}: {error}"
                 );
             }

@@ -68,6 +68,12 @@ pub enum AptError {
         /// Bytes the message has.
         expected: usize,
     },
+    /// The controller on the port is not the model the driver drives.
+    #[error("the controller on this port is a {model:?}, not a KDC101")]
+    Model {
+        /// The model it reports (HW_GET_INFO).
+        model: String,
+    },
     /// The controller reported an error (HW_RESPONSE / HW_RICHRESPONSE).
     #[error("the controller reports error {code}: {text}")]
     Device {

@@ -164,6 +164,21 @@ pub enum Reply {
     MoveStopped(DcStatus),
 }
 
+impl Reply {
+    /// The channel the reply is about, when it is about one.
+    pub fn channel(&self) -> Option<Channel> {
+        match self {
+            Self::Info(_) => None,
+            Self::Enabled(channel, _) | Self::Velocity(channel, _) | Self::Position(channel, _) => {
+                Some(*channel)
+            }
+            Self::Status(status) | Self::MoveCompleted(status) | Self::MoveStopped(status) => {
+                Some(status.channel)
+            }
+        }
+    }
+}
+
 impl Command {
     /// The frame to send to the controller at `DEVICE`.
     pub fn to_frame(self) -> Frame {
@@ -347,6 +362,16 @@ impl Reply {
                 param2,
                 ..
             } => Ok(Self::Enabled(Channel(*param1), *param2 == 1)),
+            // HW_RESPONSE is header-only: a fault that needs attention.
+            Frame::Short {
+                id: HW_RESPONSE,
+                param1,
+                param2,
+                ..
+            } => Err(AptError::Device {
+                code: u16::from_le_bytes([*param1, *param2]),
+                text: "a fault that needs attention (HW_RESPONSE)".into(),
+            }),
             Frame::Long { id, data, .. } => Self::from_data(*id, data),
             Frame::Short {
                 id, param1, param2, ..
@@ -389,7 +414,7 @@ impl Reply {
             MOT_GET_DCSTATUSUPDATE => Ok(Self::Status(Fields::of(id, data, 14)?.status())),
             MOT_MOVE_COMPLETED => Ok(Self::MoveCompleted(Fields::of(id, data, 14)?.status())),
             MOT_MOVE_STOPPED => Ok(Self::MoveStopped(Fields::of(id, data, 14)?.status())),
-            HW_RESPONSE | HW_RICHRESPONSE => {
+            HW_RICHRESPONSE => {
                 let mut f = Fields::of(id, data, 68)?;
                 let _message = f.u16();
                 let code = f.u16();
@@ -612,5 +637,34 @@ mod tests {
             matches!(&err, AptError::Device { code: 42, text } if text == "limit reached"),
             "{err}"
         );
+    }
+
+    #[test]
+    fn a_header_only_hw_response_is_the_controller_reporting_a_fault() {
+        // 80 00 00 00 01 50, as the APT documentation gives it: six bytes,
+        // no data packet.
+        let bytes = [0x80, 0x00, 0x00, 0x00, HOST, DEVICE];
+        let frame = crate::apt::FrameReader::new(&bytes[..])
+            .read_frame()
+            .unwrap();
+        let err = Reply::from_frame(&frame).unwrap_err();
+        assert!(
+            matches!(&err, AptError::Device { code: 0, text } if text.contains("HW_RESPONSE")),
+            "{err}"
+        );
+    }
+
+    #[test]
+    fn a_reply_names_its_channel() {
+        let position = Reply::Position(Channel(2), 5);
+        assert_eq!(position.channel(), Some(Channel(2)));
+        let info = Reply::Info(HardwareInfo {
+            serial: 1,
+            model: "KDC101".into(),
+            firmware: "1.0.0".into(),
+            hardware_version: 1,
+            channels: 1,
+        });
+        assert_eq!(info.channel(), None);
     }
 }
