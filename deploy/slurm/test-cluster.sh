@@ -53,7 +53,19 @@ cleanup() {
     for pid in "${pids[@]}"; do
         kill "$pid" 2>/dev/null || true
     done
-    if [[ "${KEEP:-}" != 1 ]]; then rm -rf "$work"; fi
+    # The daemons write into $work until they are gone: wait for them (10 s
+    # at most) before removing it. Cleanup never decides the test's result.
+    for _ in $(seq 100); do
+        alive=0
+        for pid in "${pids[@]}"; do
+            kill -0 "$pid" 2>/dev/null && alive=1
+        done
+        [[ "$alive" == 0 ]] && break
+        sleep 0.1
+    done
+    if [[ "${KEEP:-}" != 1 ]]; then
+        rm -rf "$work" 2>/dev/null || say "could not remove $work entirely"
+    fi
 }
 trap cleanup EXIT
 
