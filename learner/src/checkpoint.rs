@@ -85,6 +85,10 @@ impl Loaded {
     }
 }
 
+/// What a search for a usable checkpoint found: the newest one with what
+/// the check made of it, if any, and why newer ones were skipped.
+pub type Search<T> = (Option<(Loaded, T)>, Vec<CheckpointError>);
+
 /// The checkpoint directory of a run.
 #[derive(Clone, Debug)]
 pub struct Checkpoints {
@@ -166,21 +170,23 @@ impl Checkpoints {
     /// The newest checkpoint that reads back whole, with the reasons the
     /// newer ones were skipped; `None` when there is no usable one.
     pub fn newest_valid(&self) -> Result<(Option<Loaded>, Vec<CheckpointError>), CheckpointError> {
-        self.newest_usable(|_| Ok(()))
+        let (usable, skipped) = self.newest_usable(|_| Ok(()))?;
+        Ok((usable.map(|(loaded, ())| loaded), skipped))
     }
 
     /// The newest checkpoint that reads back whole and that `usable`
-    /// accepts (everything else it needs is there), with the reasons the
-    /// newer ones were skipped; `None` when there is no usable one.
-    pub fn newest_usable(
+    /// accepts (everything else it needs is there), with what `usable`
+    /// made of it and the reasons the newer ones were skipped; `None` when
+    /// there is no usable one.
+    pub fn newest_usable<T>(
         &self,
-        mut usable: impl FnMut(&Loaded) -> Result<(), String>,
-    ) -> Result<(Option<Loaded>, Vec<CheckpointError>), CheckpointError> {
+        mut usable: impl FnMut(&Loaded) -> Result<T, String>,
+    ) -> Result<Search<T>, CheckpointError> {
         let mut skipped = Vec::new();
         for path in self.list()? {
             match read(&path) {
                 Ok(loaded) => match usable(&loaded) {
-                    Ok(()) => return Ok((Some(loaded), skipped)),
+                    Ok(made) => return Ok((Some((loaded, made)), skipped)),
                     Err(reason) => skipped.push(CheckpointError::Corrupt { path, reason }),
                 },
                 Err(e) => skipped.push(e),

@@ -71,8 +71,9 @@ pub fn serve(file: LearnerFile, start: Start, security: &Security) -> anyhow::Re
         (None, Snapshots::create(&run_dir.snapshots(), keep)?)
     };
     let shared = Arc::new(shared_state(&file, run_dir, resumed.as_ref(), snapshots)?);
+    let needed = checkpoints.needed_snapshots();
     if let Some(mut snapshots) = shared.snapshots() {
-        snapshots.pin(checkpoints.needed_snapshots());
+        snapshots.pin(needed);
     }
     let device = config.device.device()?;
     let trainer = Trainer::new(
@@ -161,17 +162,14 @@ fn newest_checkpoint(
     run_dir: &RunDir,
     keep: usize,
 ) -> anyhow::Result<(Loaded, Snapshots)> {
-    let mut snapshots = None;
-    let (loaded, skipped) = checkpoints.newest_usable(|loaded| {
-        let restored = Snapshots::restore(&run_dir.snapshots(), keep, &loaded.header.snapshots)
-            .map_err(|e| format!("its snapshots do not read back: {e}"))?;
-        snapshots = Some(restored);
-        Ok(())
+    let (usable, skipped) = checkpoints.newest_usable(|loaded| {
+        Snapshots::restore(&run_dir.snapshots(), keep, &loaded.header.snapshots)
+            .map_err(|e| format!("its snapshots do not read back: {e}"))
     })?;
     for error in &skipped {
         tracing::warn!(%error, "skipping an unusable checkpoint");
     }
-    let loaded = loaded.with_context(|| {
+    let (loaded, snapshots) = usable.with_context(|| {
         format!(
             "no usable checkpoint in {} ({} unusable)",
             run_dir.checkpoints().display(),
@@ -184,7 +182,6 @@ fn newest_checkpoint(
         steps = loaded.header.steps_inserted,
         "resuming"
     );
-    let snapshots = snapshots.expect("restored for the checkpoint accepted");
     Ok((loaded, snapshots))
 }
 

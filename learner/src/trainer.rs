@@ -324,9 +324,11 @@ impl Trainer {
         }
         let path = self.checkpoints.write(header, &parts)?;
         // The snapshots the kept checkpoints need stay on disk until no
-        // kept checkpoint needs them.
+        // kept checkpoint needs them. Their headers are read before the
+        // store is locked: every acknowledgement takes that lock.
+        let needed = self.checkpoints.needed_snapshots();
         if let Some(mut snapshots) = self.shared.snapshots() {
-            snapshots.pin(self.checkpoints.needed_snapshots());
+            snapshots.pin(needed);
         }
         self.last_checkpoint = Instant::now();
         self.shared.checkpoint_written(path.clone());

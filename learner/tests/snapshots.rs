@@ -133,7 +133,7 @@ fn snapshots_a_kept_checkpoint_needs_are_never_pruned() {
                 .map_err(|e| e.to_string())
         })
         .unwrap();
-    assert_eq!(usable.unwrap().header.updates, 4);
+    assert_eq!(usable.unwrap().0.header.updates, 4);
     assert_eq!(skipped.len(), 1);
     assert!(skipped[0].to_string().contains("v000007"), "{}", skipped[0]);
 }
