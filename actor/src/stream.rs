@@ -7,9 +7,8 @@
 //! learner applies back-pressure the actor waits instead of queueing. When the
 //! learner goes away the actor reconnects with exponential backoff and jitter
 //! and resends the batches it has no acknowledgement for; the learner
-//! recognises a resent batch by its sequence number and stores it once; a
-//! restarted actor numbers its batches on from the clock, above its
-//! predecessor's.
+//! recognises a resent batch by its session (a random number drawn at start)
+//! and sequence number, and stores it once.
 
 use crate::config::ActorFile;
 use anyhow::Context;
@@ -56,6 +55,37 @@ struct Link {
     client: LearnerClient<AuthChannel>,
     batches: tokio::sync::mpsc::Sender<pb::StepBatch>,
     acks: mpsc::Receiver<Result<pb::StepAck, tonic::Status>>,
+    /// The largest batch the learner decodes, in bytes.
+    max_message_bytes: usize,
+}
+
+/// Room kept in a message for the batch's own fields (id, session,
+/// sequence) and protobuf framing.
+const BATCH_OVERHEAD: usize = 1024;
+
+/// Splits `steps` into runs whose encoded batches fit in `max_bytes`, in
+/// order; an error when a single step does not fit.
+fn split_to_fit(steps: Vec<pb::Step>, max_bytes: usize) -> anyhow::Result<Vec<Vec<pb::Step>>> {
+    use prost::Message;
+    let budget = max_bytes.saturating_sub(BATCH_OVERHEAD);
+    let mut runs = vec![Vec::new()];
+    let mut used = 0;
+    for step in steps {
+        let len = step.encoded_len();
+        let size = 1 + prost::encoding::encoded_len_varint(len as u64) + len;
+        if size > budget {
+            anyhow::bail!(
+                "one step encodes to {size} bytes, more than the {max_bytes} bytes the learner takes in a message: raise the learner's max_message_bytes"
+            );
+        }
+        if used + size > budget {
+            runs.push(Vec::new());
+            used = 0;
+        }
+        used += size;
+        runs.last_mut().expect("never empty").push(step);
+    }
+    Ok(runs)
 }
 
 /// Exponential backoff with ±50 % jitter.
@@ -95,6 +125,7 @@ struct Actor {
     explore_uniformly: bool,
     newest_snapshot: u64,
     unacked: VecDeque<pb::StepBatch>,
+    session: u64,
     next_sequence: u64,
     steps_sent: u64,
     returns: f64,
@@ -106,15 +137,16 @@ struct Actor {
 /// acknowledged: a learner applying back-pressure may hold them for long.
 const STOP_DRAIN: Duration = Duration::from_secs(3);
 
-/// This process's first batch sequence number: microseconds since the Unix
-/// epoch. The learner stores a batch of an actor id only above the last
-/// sequence it stored for that id, so an actor restarted under the same id
-/// must count on from beyond its predecessor (which sent far fewer than a
-/// million batches a second).
-fn first_sequence() -> u64 {
-    std::time::SystemTime::now()
-        .duration_since(std::time::UNIX_EPOCH)
-        .map_or(0, |d| d.as_micros() as u64)
+/// This process's session: a random number, so that the learner tells its
+/// batches from those of any other process under the same id (an earlier
+/// run, or another client) and recognises resent ones by their sequence.
+fn new_session() -> anyhow::Result<u64> {
+    loop {
+        let session = getrandom::u64().map_err(|e| anyhow::anyhow!("no random session: {e}"))?;
+        if session != 0 {
+            return Ok(session);
+        }
+    }
 }
 
 /// Streams until `stop` is set or `steps` steps have been acknowledged,
@@ -153,7 +185,8 @@ pub fn run(
         explore_uniformly: true,
         newest_snapshot: 0,
         unacked: VecDeque::new(),
-        next_sequence: first_sequence(),
+        session: new_session()?,
+        next_sequence: 0,
         steps_sent: 0,
         returns: 0.0,
         successes: 0,
@@ -296,10 +329,16 @@ impl Actor {
                 .await
                 .context("cannot connect to the learner")?;
             let mut client = LearnerClient::new(channel);
-            let mut stream = client
+            let response = client
                 .stream_steps(tokio_stream::wrappers::ReceiverStream::new(receiver))
-                .await?
-                .into_inner();
+                .await?;
+            // A learner that does not say takes gRPC's default.
+            let max_message_bytes = response
+                .metadata()
+                .get(tweezer_proto::MAX_MESSAGE_HEADER)
+                .and_then(|v| v.to_str().ok()?.parse().ok())
+                .unwrap_or(tweezer_proto::DEFAULT_MAX_MESSAGE_BYTES);
+            let mut stream = response.into_inner();
             tokio::spawn(async move {
                 loop {
                     let next = match stream.message().await {
@@ -313,8 +352,10 @@ impl Actor {
                     }
                 }
             });
-            anyhow::Ok(client)
+            anyhow::Ok((client, max_message_bytes))
         })?;
+        let (client, max_message_bytes) = client;
+        tracing::debug!(max_message_bytes, "stream open");
         for batch in &self.unacked {
             batches
                 .blocking_send(batch.clone())
@@ -325,6 +366,7 @@ impl Actor {
             client,
             batches,
             acks,
+            max_message_bytes,
         })
     }
 
@@ -350,20 +392,25 @@ impl Actor {
                 }
             }
         }
-        let batch = pb::StepBatch {
-            actor_id: self.file.actor.id.clone(),
-            sequence: self.next_sequence,
-            steps,
-        };
-        self.next_sequence += 1;
-        self.steps_sent += batch.steps.len() as u64;
-        self.unacked.push_back(batch.clone());
-        self.report.batches_sent += 1;
+        let runs = split_to_fit(steps, link.max_message_bytes).map_err(Broken::Fatal)?;
+        for steps in runs {
+            let batch = pb::StepBatch {
+                actor_id: self.file.actor.id.clone(),
+                session: self.session,
+                sequence: self.next_sequence,
+                steps,
+            };
+            self.next_sequence += 1;
+            self.steps_sent += batch.steps.len() as u64;
+            self.unacked.push_back(batch.clone());
+            self.report.batches_sent += 1;
+            link.batches
+                .blocking_send(batch)
+                .map_err(|_| Broken::Link("the stream closed".into()))?;
+        }
         self.batch_seconds.observe(started.elapsed().as_secs_f64());
         *self.published.lock().unwrap_or_else(|p| p.into_inner()) = self.summary();
-        link.batches
-            .blocking_send(batch)
-            .map_err(|_| Broken::Link("the stream closed".into()))
+        Ok(())
     }
 
     /// Chooses every environment's action.
@@ -420,9 +467,19 @@ impl Actor {
     ) -> Result<(), Broken> {
         let ack = match ack {
             Ok(ack) => ack,
-            Err(status) if status.code() == tonic::Code::InvalidArgument => {
+            // Refusals that sending again cannot mend.
+            Err(status)
+                if matches!(
+                    status.code(),
+                    tonic::Code::InvalidArgument
+                        | tonic::Code::PermissionDenied
+                        | tonic::Code::OutOfRange
+                ) || (status.code() == tonic::Code::ResourceExhausted
+                    && status.message().contains("larger than")) =>
+            {
                 return Err(Broken::Fatal(anyhow::anyhow!(
-                    "the learner refused a batch: {}",
+                    "the learner refused a batch ({:?}): {}",
+                    status.code(),
                     status.message()
                 )));
             }

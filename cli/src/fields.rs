@@ -71,6 +71,8 @@ pub fn learner(s: &pb::LearnerStatus) -> Fields {
         ("mean_q", json!(s.mean_q)),
         ("malformed_batches", json!(s.malformed_batches)),
         ("duplicate_batches", json!(s.duplicate_batches)),
+        ("diverged_updates", json!(s.diverged_updates)),
+        ("known_actors", json!(s.known_actors)),
     ]
 }
 
@@ -78,6 +80,8 @@ pub fn learner(s: &pb::LearnerStatus) -> Fields {
 pub fn actor(a: &pb::ActorStatus) -> Fields {
     vec![
         ("id", json!(a.id)),
+        ("session", json!(a.session)),
+        ("token", json!(a.token)),
         ("streams", json!(a.streams)),
         ("steps", json!(a.steps)),
         ("episodes", json!(a.episodes)),

@@ -273,6 +273,38 @@ impl EnvConfig {
         0.5 * self.sphere_diameter_px
     }
 
+    /// The smallest and largest reward one step can earn: the time reward,
+    /// the carry reward of a trap that moves at most `stage_speed_px` per
+    /// axis, and the collision or success reward when they apply (each
+    /// component only when switched on).
+    pub fn reward_range(&self) -> [f64; 2] {
+        let r = &self.rewards;
+        let on = |component, lo: f64, hi: f64| {
+            if self.reward_on(component) {
+                [lo, hi]
+            } else {
+                [0.0, 0.0]
+            }
+        };
+        let carry = r.carry.abs() * self.stage_speed_px * std::f64::consts::SQRT_2;
+        [
+            on(RewardComponent::Time, r.time, r.time),
+            on(RewardComponent::Carry, -carry, carry),
+            on(
+                RewardComponent::Collision,
+                r.collision.min(0.0),
+                r.collision.max(0.0),
+            ),
+            on(
+                RewardComponent::Success,
+                r.success.min(0.0),
+                r.success.max(0.0),
+            ),
+        ]
+        .iter()
+        .fold([0.0, 0.0], |[lo, hi], [a, b]| [lo + a, hi + b])
+    }
+
     /// Whether a reward component is switched on.
     pub fn reward_on(&self, component: RewardComponent) -> bool {
         !self.rewards.off.contains(&component)

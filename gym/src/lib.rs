@@ -32,6 +32,6 @@ pub use render::{Frame, Pixel, Renderer, SizeMismatch};
 pub use rng::SplitMix64;
 pub use seeds::{Seeds, SeedsError};
 pub use spheres::{FreeSphere, Motion};
-pub use step_record::{EpisodeEnd, StepRecord};
+pub use step_record::{EpisodeEnd, StepBounds, StepRecord};
 pub use trajectory::{RecordError, Trajectory, record};
 pub use vec_env::{ActionCountMismatch, EpisodeStats, RandomSteps, Slot, VecEnv};

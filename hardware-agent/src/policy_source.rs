@@ -205,7 +205,9 @@ impl LoadedPolicy {
     ) -> Result<Self, PolicyError> {
         match choice {
             PolicyChoice::Greedy => Ok(Self::greedy()),
-            PolicyChoice::File(path) => Self::from_file(path, env),
+            PolicyChoice::File(path) => {
+                Self::from_file_within(path, env, Duration::from_secs_f64(config.timeout_s))
+            }
             PolicyChoice::Learner(snapshot) => {
                 let timeout = Duration::from_secs_f64(config.timeout_s);
                 let security = security.ok_or_else(|| {
@@ -220,9 +222,42 @@ impl LoadedPolicy {
 
     /// Loads and verifies a snapshot file.
     pub fn from_file(path: &Path, env: &EnvConfig) -> Result<Self, PolicyError> {
-        let bytes = std::fs::read(path).map_err(|e| {
-            PolicyError::Refused(format!("cannot read snapshot {}: {e}", path.display()))
-        })?;
+        Self::from_file_within(path, env, Duration::from_secs(60))
+    }
+
+    /// Loads and verifies a snapshot file that must be read within
+    /// `timeout`: only a regular file is read (a FIFO or a device could
+    /// block for ever), on a helper thread that is abandoned if a stalled
+    /// file system keeps it past the bound.
+    pub fn from_file_within(
+        path: &Path,
+        env: &EnvConfig,
+        timeout: Duration,
+    ) -> Result<Self, PolicyError> {
+        let refuse = |why: String| {
+            PolicyError::Refused(format!("cannot read snapshot {}: {why}", path.display()))
+        };
+        let metadata = std::fs::metadata(path).map_err(|e| refuse(e.to_string()))?;
+        if !metadata.is_file() {
+            return Err(refuse("not a regular file".into()));
+        }
+        let (tx, rx) = std::sync::mpsc::channel();
+        let owned = path.to_path_buf();
+        std::thread::Builder::new()
+            .name("policy-file".into())
+            .spawn(move || {
+                let _ = tx.send(std::fs::read(owned));
+            })
+            .map_err(|e| refuse(e.to_string()))?;
+        let bytes = match rx.recv_timeout(timeout) {
+            Ok(read) => read.map_err(|e| refuse(e.to_string()))?,
+            Err(_) => {
+                return Err(refuse(format!(
+                    "not read within {:.1} s (policy.timeout_s)",
+                    timeout.as_secs_f64()
+                )));
+            }
+        };
         Self::from_bytes(&bytes, env, &format!("file {}", path.display()))
     }
 
@@ -243,7 +278,10 @@ impl LoadedPolicy {
             .enable_all()
             .build()
             .map_err(|e| fail(e.to_string()))?;
-        let (info, bytes) = runtime.block_on(async {
+        // One bound for all of it: the TCP connect, the TLS handshake and
+        // the download (a learner that accepts and never answers must not
+        // hold the agent in LOADING).
+        let fetch = async {
             let channel = ClientSecurity::load(security)
                 .map_err(|e| fail(e.to_string()))?
                 .connect_bounded(address, timeout)
@@ -253,7 +291,15 @@ impl LoadedPolicy {
             download_snapshot(&mut client, choice.selector())
                 .await
                 .map_err(|e| fail(e.to_string()))
-        })?;
+        };
+        let (info, bytes) = runtime
+            .block_on(async { tokio::time::timeout(timeout, fetch).await })
+            .map_err(|_| {
+                fail(format!(
+                    "no snapshot within {:.1} s (policy.timeout_s: connect, TLS handshake and download together)",
+                    timeout.as_secs_f64()
+                ))
+            })??;
         Self::from_bytes(
             &bytes,
             env,

@@ -13,10 +13,9 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 use tokio::net::TcpListener;
 use tweezer_config::ConfigError;
-use tweezer_gym::{EnvConfig, ObservationBounds, RandomSteps, Renderer, SplitMix64};
+use tweezer_gym::{EnvConfig, RandomSteps, Renderer, SplitMix64, StepBounds};
 use tweezer_proto::pb;
 use tweezer_proto::pb::learner_client::LearnerClient;
-use tweezer_proto::pb::learner_server::LearnerServer;
 use tweezer_rpc::{ClientSecurity, LoopbackCredentials, Security, ServerSecurity};
 
 /// Benchmark figures. Times are means over the timed repetitions.
@@ -92,11 +91,11 @@ fn ingest_rate(env: &EnvConfig, server: &Path, client: &Path) -> anyhow::Result<
         let ingest = Arc::new(LearnerState::new(
             Replay::new(ReplayConfig::default()),
             None,
-            ObservationBounds::for_config(env),
+            StepBounds::for_config(env),
         ));
         let listener = TcpListener::bind("127.0.0.1:0").await?;
         let addr = listener.local_addr()?.to_string();
-        let service = LearnerServer::new(LearnerService::new(ingest.clone()));
+        let service = LearnerService::new(ingest.clone()).into_server();
         tokio::spawn(server.serve(listener, service, std::future::pending()));
         let started = Instant::now();
         let tasks: Vec<_> = per_stream

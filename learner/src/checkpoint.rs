@@ -14,6 +14,7 @@
 
 use crate::durable_write::{sync_dir, write_atomic};
 use crate::episodes::Episodes;
+use crate::replay::Source;
 use crate::snapshots::SnapshotsState;
 use serde::{Deserialize, Serialize};
 use sha2::{Digest, Sha256};
@@ -40,10 +41,26 @@ pub struct CheckpointHeader {
     pub episodes: Episodes,
     /// Published snapshots.
     pub snapshots: SnapshotsState,
-    /// Each actor's last accepted batch sequence number.
-    pub actors: BTreeMap<String, u64>,
+    /// Each actor session's last stored batch (checkpoints before sessions
+    /// have none: their actors' resent batches may be stored twice).
+    #[serde(default)]
+    pub sessions: Vec<SessionState>,
     /// Names and lengths of the binary parts, in file order.
     pub parts: Vec<(String, u64)>,
+}
+
+/// What a checkpoint keeps of an actor session: enough to recognise its
+/// resent batches after a restart.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct SessionState {
+    /// The actor's id.
+    pub actor: String,
+    /// Its session.
+    pub session: u64,
+    /// Its last stored batch.
+    pub sequence: u64,
+    /// The replay source its steps are stored under.
+    pub source: Source,
 }
 
 /// A checkpoint that cannot be used.

@@ -76,7 +76,16 @@ pub struct LearnerConfig {
     pub checkpoints: CheckpointConfig,
     /// Updates between two lines of the metrics file.
     pub metrics_every_updates: u64,
+    /// Largest step batch the gRPC service decodes, in bytes; actors learn
+    /// it when they connect and split their batches to fit.
+    pub max_message_bytes: usize,
 }
+
+/// Smallest `max_message_bytes`: room for any one step of a dense field.
+const MIN_MESSAGE_BYTES: usize = 1 << 20;
+
+/// Largest `max_message_bytes`.
+const MAX_MESSAGE_BYTES: usize = 1 << 30;
 
 impl Default for LearnerConfig {
     fn default() -> Self {
@@ -94,6 +103,7 @@ impl Default for LearnerConfig {
             snapshots: SnapshotConfig::default(),
             checkpoints: CheckpointConfig::default(),
             metrics_every_updates: 100,
+            max_message_bytes: 16 << 20,
         }
     }
 }
@@ -133,6 +143,12 @@ impl LearnerConfig {
         }
         if self.metrics_every_updates == 0 {
             return invalid("metrics_every_updates", "must be at least 1");
+        }
+        if !(MIN_MESSAGE_BYTES..=MAX_MESSAGE_BYTES).contains(&self.max_message_bytes) {
+            return invalid(
+                "max_message_bytes",
+                "must be between 1 MiB (1048576) and 1 GiB (1073741824)",
+            );
         }
         self.td3.validate()?;
         self.limiter.validate()?;

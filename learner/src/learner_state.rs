@@ -4,16 +4,17 @@
 //! decoded by the service: each is checked whole before any step touches the
 //! replay.
 
+use crate::checkpoint::SessionState;
 use crate::episodes::{Episode, Episodes, Rolling};
 use crate::limiter::{LimiterState, SharedLimiter};
 use crate::replay::{Replay, Source};
 use crate::run_log::RunLog;
 use crate::snapshots::Snapshots;
-use std::collections::{BTreeMap, HashMap};
+use std::collections::HashMap;
 use std::sync::atomic::{AtomicBool, AtomicU32, AtomicU64, Ordering};
 use std::sync::{Mutex, MutexGuard};
 use std::time::{Duration, Instant};
-use tweezer_gym::{ObservationBounds, StepRecord};
+use tweezer_gym::{StepBounds, StepRecord};
 use tweezer_rpc::{Histogram, latency_buckets};
 
 /// What training reports for status.
@@ -31,6 +32,9 @@ pub struct TrainingStatus {
     pub insert_rate: f64,
     /// Transitions sampled per second, recently.
     pub sample_rate: f64,
+    /// Updates that diverged and were rolled back since this process
+    /// started.
+    pub diverged_updates: u64,
 }
 
 /// One batch of an actor's steps, decoded at the service edge.
@@ -38,7 +42,11 @@ pub struct TrainingStatus {
 pub struct ActorBatch {
     /// The actor's id.
     pub actor: String,
-    /// Its sequence number among the actor's batches.
+    /// The actor process's session: a random number it keeps across
+    /// reconnects. Resent batches are recognised within a session; 0: the
+    /// actor asks for no deduplication.
+    pub session: u64,
+    /// Its sequence number among the session's batches.
     pub sequence: u64,
     /// The steps, in the order they were taken.
     pub steps: Vec<StepRecord>,
@@ -61,6 +69,13 @@ pub enum Refusal {
     /// The batch is malformed; the reason names the field.
     #[error("{0}")]
     Malformed(String),
+    /// The session was opened with another token.
+    #[error("{0}")]
+    NotYours(String),
+    /// The learner tracks as many actor sessions as it may, all of them
+    /// streaming.
+    #[error("the learner tracks {0} actor sessions, all with open streams; try again later")]
+    TooManySessions(usize),
     /// The actor went away while the batch waited for the rate limiter.
     #[error("the actor closed its stream")]
     Closed,
@@ -100,16 +115,38 @@ pub struct LearnerStatus {
     pub explore_uniformly: bool,
     /// Whether an operator paused learning.
     pub paused: bool,
-    /// Every actor heard from, by id.
+    /// The actor sessions tracked now, streaming ones and the most
+    /// recently active first, at most [`STATUS_ACTORS`], by id.
     pub actors: Vec<ActorSummary>,
+    /// Actor sessions tracked now.
+    pub known_actors: usize,
 }
 
-/// An actor the learner has heard from.
-#[derive(Clone, Copy, Debug)]
+/// Most actor sessions the learner tracks; past this, the tenth quiet
+/// longest without an open stream is forgotten.
+pub const MAX_SESSIONS: usize = 10_000;
+
+/// A session without an open stream is forgotten after this long idle.
+pub const FORGET_IDLE: Duration = Duration::from_secs(3600);
+
+/// Most actor sessions a status lists.
+pub const STATUS_ACTORS: usize = 100;
+
+/// How often idle sessions are looked for while new ones arrive.
+const SWEEP_EVERY: Duration = Duration::from_secs(10);
+
+/// An actor session: its id and the random number it drew at start.
+pub type SessionKey = (String, u64);
+
+/// An actor session the learner has heard from.
+#[derive(Clone, Debug)]
 struct KnownActor {
     source: Source,
     /// The last batch stored.
     last_sequence: Option<u64>,
+    /// The name of the token that opened it (None: no tokens in use, or
+    /// restored from a checkpoint).
+    token: Option<String>,
     /// Open streams bound to it.
     streams: u32,
     /// Steps stored and episodes finished since this process started.
@@ -117,26 +154,102 @@ struct KnownActor {
     episodes: u64,
     /// When its last batch was stored.
     last_stored: Option<Instant>,
+    /// When a stream last opened or closed, or a batch was stored.
+    last_seen: Instant,
 }
 
 impl KnownActor {
-    fn new(source: Source, last_sequence: Option<u64>) -> Self {
+    fn new(source: Source, last_sequence: Option<u64>, token: Option<String>) -> Self {
         Self {
             source,
             last_sequence,
+            token,
             streams: 0,
             steps: 0,
             episodes: 0,
             last_stored: None,
+            last_seen: Instant::now(),
         }
     }
 }
 
-/// One actor, as the learner sees it.
+/// The actor sessions the learner tracks, bounded in number.
+#[derive(Debug)]
+struct Registry {
+    sessions: HashMap<SessionKey, KnownActor>,
+    /// The replay source the next new session gets.
+    next_source: Source,
+    last_sweep: Instant,
+}
+
+impl Registry {
+    fn new() -> Self {
+        Self {
+            sessions: HashMap::new(),
+            next_source: 0,
+            last_sweep: Instant::now(),
+        }
+    }
+
+    /// The session `key`, made when new (forgetting idle ones to make
+    /// room); `None` when every tracked session streams.
+    fn entry(&mut self, key: &SessionKey, token: Option<&str>) -> Option<&mut KnownActor> {
+        if !self.sessions.contains_key(key) {
+            if self.last_sweep.elapsed() >= SWEEP_EVERY {
+                self.forget_idle();
+            }
+            if self.sessions.len() >= MAX_SESSIONS {
+                self.forget_quietest();
+            }
+            if self.sessions.len() >= MAX_SESSIONS {
+                return None;
+            }
+            let source = self.next_source;
+            self.next_source = self.next_source.wrapping_add(1);
+            self.sessions.insert(
+                key.clone(),
+                KnownActor::new(source, None, token.map(str::to_string)),
+            );
+        }
+        self.sessions.get_mut(key)
+    }
+
+    /// Forgets the tenth of the sessions without an open stream that were
+    /// quiet longest (a tenth at once keeps a flood of new ids cheap).
+    fn forget_quietest(&mut self) {
+        let mut idle: Vec<(Instant, SessionKey)> = self
+            .sessions
+            .iter()
+            .filter(|(_, a)| a.streams == 0)
+            .map(|(k, a)| (a.last_seen, k.clone()))
+            .collect();
+        let n = (MAX_SESSIONS / 10).min(idle.len());
+        if n == 0 {
+            return;
+        }
+        idle.select_nth_unstable_by_key(n - 1, |(seen, _)| *seen);
+        for (_, key) in &idle[..n] {
+            self.sessions.remove(key);
+        }
+    }
+
+    /// Forgets sessions idle for [`FORGET_IDLE`] without an open stream.
+    fn forget_idle(&mut self) {
+        self.last_sweep = Instant::now();
+        self.sessions
+            .retain(|_, a| a.streams > 0 || a.last_seen.elapsed() < FORGET_IDLE);
+    }
+}
+
+/// One actor session, as the learner sees it.
 #[derive(Clone, Debug, PartialEq)]
 pub struct ActorSummary {
     /// Its id.
     pub id: String,
+    /// Its session (0: not deduplicated).
+    pub session: u64,
+    /// The name of the token that opened the session, if known.
+    pub token: Option<String>,
     /// Open streams bound to it.
     pub streams: u32,
     /// Steps stored from it since this process started.
@@ -158,8 +271,8 @@ pub struct Captured {
     pub steps_inserted: u64,
     /// Finished episodes.
     pub episodes: Episodes,
-    /// Each actor's last stored batch.
-    pub actors: BTreeMap<String, u64>,
+    /// Each session's last stored batch and replay source.
+    pub actors: Vec<SessionState>,
 }
 
 /// The learner's shared state.
@@ -168,8 +281,8 @@ pub struct LearnerState {
     replay: Mutex<Replay>,
     /// `None` while learning is paused: inserts are not rate limited.
     limiter: Option<SharedLimiter>,
-    bounds: ObservationBounds,
-    actors: Mutex<HashMap<String, KnownActor>>,
+    bounds: StepBounds,
+    actors: Mutex<Registry>,
     episodes: Mutex<Episodes>,
     steps_inserted: AtomicU64,
     uniform_steps: u64,
@@ -216,12 +329,12 @@ fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
 impl LearnerState {
     /// Ingestion into `replay`, rate limited by `limiter` when given; no
     /// snapshots, no metrics, actors told to explore uniformly throughout.
-    pub fn new(replay: Replay, limiter: Option<SharedLimiter>, bounds: ObservationBounds) -> Self {
+    pub fn new(replay: Replay, limiter: Option<SharedLimiter>, bounds: StepBounds) -> Self {
         Self {
             replay: Mutex::new(replay),
             limiter,
             bounds,
-            actors: Mutex::new(HashMap::new()),
+            actors: Mutex::new(Registry::new()),
             episodes: Mutex::new(Episodes::default()),
             steps_inserted: AtomicU64::new(0),
             uniform_steps: u64::MAX,
@@ -267,16 +380,19 @@ impl LearnerState {
         self,
         steps_inserted: u64,
         episodes: Episodes,
-        actors: &BTreeMap<String, u64>,
+        actors: &[SessionState],
     ) -> Self {
         self.steps_inserted.store(steps_inserted, Ordering::Relaxed);
         *lock(&self.episodes) = episodes;
-        let mut known = lock(&self.actors);
-        for (id, &sequence) in actors {
-            let source = known.len() as Source;
-            known.insert(id.clone(), KnownActor::new(source, Some(sequence)));
+        let mut registry = lock(&self.actors);
+        for a in actors.iter().take(MAX_SESSIONS) {
+            let known = KnownActor::new(a.source, Some(a.sequence), None);
+            registry
+                .sessions
+                .insert((a.actor.clone(), a.session), known);
+            registry.next_source = registry.next_source.max(a.source.wrapping_add(1));
         }
-        drop(known);
+        drop(registry);
         self
     }
 
@@ -308,6 +424,8 @@ impl LearnerState {
         let (latest_snapshot, best_snapshot) = self
             .snapshots()
             .map_or((0, 0), |s| (s.latest_version(), s.best_version()));
+        let known_actors = lock(&self.actors).sessions.len();
+        let actors = self.actors();
         LearnerStatus {
             steps_inserted: self.steps_inserted(),
             training: *self.training(),
@@ -323,7 +441,8 @@ impl LearnerState {
             duplicate_batches: self.duplicates(),
             explore_uniformly: self.explore_uniformly(),
             paused: self.paused(),
-            actors: self.actors(),
+            known_actors,
+            actors,
         }
     }
 
@@ -337,8 +456,8 @@ impl LearnerState {
         &self.run_log
     }
 
-    /// The bounds every observation of an actor's batch must lie in.
-    pub fn bounds(&self) -> &ObservationBounds {
+    /// The bounds every step of an actor's batch must lie in.
+    pub fn bounds(&self) -> &StepBounds {
         &self.bounds
     }
 
@@ -368,26 +487,35 @@ impl LearnerState {
         self.connected.load(Ordering::Relaxed)
     }
 
-    pub(crate) fn stream_opened(&self) {
+    /// A stream opened.
+    pub fn stream_opened(&self) {
         self.connected.fetch_add(1, Ordering::Relaxed);
     }
 
-    /// A stream closed; `actor` is the actor it was bound to, if any.
-    pub(crate) fn stream_closed(&self, actor: Option<&str>) {
+    /// A stream closed; `session` is the session it was bound to, if any.
+    pub fn stream_closed(&self, session: Option<&SessionKey>) {
         self.connected.fetch_sub(1, Ordering::Relaxed);
-        if let Some(id) = actor
-            && let Some(known) = lock(&self.actors).get_mut(id)
+        if let Some(key) = session
+            && let Some(known) = lock(&self.actors).sessions.get_mut(key)
         {
             known.streams = known.streams.saturating_sub(1);
+            known.last_seen = Instant::now();
         }
     }
 
-    /// Every actor heard from, by id.
+    /// The sessions a status lists: those streaming and the most recently
+    /// active first, at most [`STATUS_ACTORS`], by id.
     pub fn actors(&self) -> Vec<ActorSummary> {
-        let mut actors: Vec<ActorSummary> = lock(&self.actors)
-            .iter()
-            .map(|(id, known)| ActorSummary {
+        let registry = lock(&self.actors);
+        let mut recent: Vec<(&SessionKey, &KnownActor)> = registry.sessions.iter().collect();
+        recent.sort_by_key(|(_, a)| (a.streams == 0, std::cmp::Reverse(a.last_seen)));
+        let mut actors: Vec<ActorSummary> = recent
+            .into_iter()
+            .take(STATUS_ACTORS)
+            .map(|((id, session), known)| ActorSummary {
                 id: id.clone(),
+                session: *session,
+                token: known.token.clone(),
                 streams: known.streams,
                 steps: known.steps,
                 episodes: known.episodes,
@@ -395,7 +523,7 @@ impl LearnerState {
                 last_sequence: known.last_sequence,
             })
             .collect();
-        actors.sort_by(|a, b| a.id.cmp(&b.id));
+        actors.sort_by(|a, b| (&a.id, a.session).cmp(&(&b.id, b.session)));
         actors
     }
 
@@ -463,10 +591,20 @@ impl LearnerState {
     /// the actors' sequence numbers match its contents.
     pub fn capture(&self, with_replay: bool) -> Captured {
         let replay = self.replay();
-        let actors = lock(&self.actors)
+        let mut actors: Vec<SessionState> = lock(&self.actors)
+            .sessions
             .iter()
-            .filter_map(|(id, a)| a.last_sequence.map(|s| (id.clone(), s)))
+            .filter(|((_, session), _)| *session != 0)
+            .filter_map(|((actor, session), a)| {
+                a.last_sequence.map(|sequence| SessionState {
+                    actor: actor.clone(),
+                    session: *session,
+                    sequence,
+                    source: a.source,
+                })
+            })
             .collect();
+        actors.sort_by(|a, b| (&a.actor, a.session).cmp(&(&b.actor, b.session)));
         Captured {
             replay: with_replay.then(|| replay.encode()),
             steps_inserted: self.steps_inserted(),
@@ -484,15 +622,18 @@ impl LearnerState {
         }
     }
 
-    /// Checks and stores one batch of the stream that `stream_actor`
+    /// Checks and stores one batch of the stream that `stream_session`
     /// identifies (set by the stream's first batch), waiting for the rate
-    /// limiter. A batch stored before (same actor, sequence not above the
-    /// last stored) is acknowledged and not stored again. `closed` says the
-    /// client went away: a producer waiting on back-pressure then gives up.
+    /// limiter. `token` names the caller's token: a session stays with the
+    /// token that opened it. A batch stored before (same session, sequence
+    /// not above the last stored; never in session 0) is acknowledged and
+    /// not stored again. `closed` says the client went away: a producer
+    /// waiting on back-pressure then gives up.
     pub fn accept(
         &self,
         batch: ActorBatch,
-        stream_actor: &mut Option<String>,
+        stream_session: &mut Option<SessionKey>,
+        token: Option<&str>,
         closed: impl Fn() -> bool,
     ) -> Result<Ack, Refusal> {
         let refuse = |reason: String| {
@@ -501,24 +642,41 @@ impl LearnerState {
         };
         let ActorBatch {
             actor,
+            session,
             sequence,
             steps,
         } = batch;
-        match stream_actor {
-            Some(bound) if *bound != actor => {
+        let key = (actor, session);
+        match stream_session {
+            Some(bound) if *bound != key => {
                 return Err(refuse(format!(
-                    "actor_id: unknown actor `{actor}` on a stream opened by `{bound}`"
+                    "actor_id, session: `{}` session {} on a stream opened by `{}` session {}",
+                    key.0, key.1, bound.0, bound.1
                 )));
             }
             Some(_) => {}
             None => {
-                *stream_actor = Some(actor.clone());
-                let mut actors = lock(&self.actors);
-                let next_source = actors.len() as Source;
-                actors
-                    .entry(actor.clone())
-                    .or_insert(KnownActor::new(next_source, None))
-                    .streams += 1;
+                let mut registry = lock(&self.actors);
+                let len = registry.sessions.len();
+                let known = registry
+                    .entry(&key, token)
+                    .ok_or(Refusal::TooManySessions(len))?;
+                // Session 0 asks for nothing to be remembered: any token
+                // may use it.
+                match (&known.token, token) {
+                    (Some(owner), Some(caller)) if owner != caller && key.1 != 0 => {
+                        return Err(Refusal::NotYours(format!(
+                            "session {} of actor `{}` was opened with the token `{owner}`, not `{caller}`",
+                            key.1, key.0
+                        )));
+                    }
+                    (None, Some(caller)) => known.token = Some(caller.to_string()),
+                    _ => {}
+                }
+                known.streams += 1;
+                known.last_seen = Instant::now();
+                drop(registry);
+                *stream_session = Some(key.clone());
             }
         }
         if let Some((i, reason)) =
@@ -526,7 +684,7 @@ impl LearnerState {
         {
             return Err(refuse(format!("steps[{i}]: {reason}")));
         }
-        if self.stored_before(&actor, sequence) {
+        if self.stored_before(&key, sequence) {
             self.duplicates.fetch_add(1, Ordering::Relaxed);
             return Ok(self.ack(sequence));
         }
@@ -543,13 +701,13 @@ impl LearnerState {
         let mut finished: Vec<Episode> = Vec::new();
         let len = {
             let mut replay = self.replay();
-            let mut actors = lock(&self.actors);
-            let next_source = actors.len() as Source;
-            let known = actors
-                .entry(actor)
-                .or_insert(KnownActor::new(next_source, None));
-            if known.last_sequence.is_some_and(|last| sequence <= last) {
-                // Another stream of the same actor stored it meanwhile.
+            let mut registry = lock(&self.actors);
+            let len = registry.sessions.len();
+            let known = registry
+                .entry(&key, token)
+                .ok_or(Refusal::TooManySessions(len))?;
+            if session != 0 && known.last_sequence.is_some_and(|last| sequence <= last) {
+                // Another stream of the same session stored it meanwhile.
                 self.duplicates.fetch_add(1, Ordering::Relaxed);
                 return Ok(self.ack(sequence));
             }
@@ -564,8 +722,10 @@ impl LearnerState {
             }
             known.steps += steps.len() as u64;
             known.episodes += finished.len() as u64;
-            known.last_stored = Some(Instant::now());
-            drop(actors);
+            let now = Instant::now();
+            known.last_stored = Some(now);
+            known.last_seen = now;
+            drop(registry);
             self.steps_inserted
                 .fetch_add(steps.len() as u64, Ordering::Relaxed);
             replay.len()
@@ -579,10 +739,12 @@ impl LearnerState {
         Ok(self.ack(sequence))
     }
 
-    fn stored_before(&self, actor: &str, sequence: u64) -> bool {
-        lock(&self.actors)
-            .get(actor)
-            .and_then(|a| a.last_sequence)
-            .is_some_and(|last| sequence <= last)
+    fn stored_before(&self, key: &SessionKey, sequence: u64) -> bool {
+        key.1 != 0
+            && lock(&self.actors)
+                .sessions
+                .get(key)
+                .and_then(|a| a.last_sequence)
+                .is_some_and(|last| sequence <= last)
     }
 }

@@ -7,6 +7,7 @@
 pub mod bench;
 pub mod checkpoint;
 pub mod config;
+pub mod divergence;
 pub mod durable_write;
 pub mod episodes;
 pub mod learner_state;

@@ -10,7 +10,6 @@ use tokio_stream::wrappers::TcpListenerStream;
 use tweezer_config::ConfigError;
 use tweezer_gym::{EnvConfig, RandomSteps};
 use tweezer_proto::pb;
-use tweezer_proto::pb::learner_server::LearnerServer;
 
 /// Serves `shared` on an ephemeral loopback port; returns its address.
 pub async fn serve(shared: Arc<LearnerState>) -> std::io::Result<SocketAddr> {
@@ -18,7 +17,7 @@ pub async fn serve(shared: Arc<LearnerState>) -> std::io::Result<SocketAddr> {
     let addr = listener.local_addr()?;
     tokio::spawn(
         tonic::transport::Server::builder()
-            .add_service(LearnerServer::new(LearnerService::new(shared)))
+            .add_service(LearnerService::new(shared).into_server())
             .serve_with_incoming(TcpListenerStream::new(listener)),
     );
     Ok(addr)
@@ -38,6 +37,7 @@ pub fn batches(
     Ok((0..count)
         .map(|sequence| pb::StepBatch {
             actor_id: actor.to_string(),
+            session: seed.wrapping_add(1),
             sequence: sequence as u64,
             steps: steps.by_ref().take(size).collect(),
         })

@@ -39,6 +39,11 @@ fn samples(s: &LearnerStatus) -> Vec<MetricSample> {
             s.malformed_batches,
         ),
         MetricSample::counter(
+            "diverged_updates",
+            "Updates whose loss was not finite, undone by a rollback.",
+            s.training.diverged_updates,
+        ),
+        MetricSample::counter(
             "duplicate_batches",
             "Step batches dropped as already stored.",
             s.duplicate_batches,

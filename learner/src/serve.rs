@@ -20,9 +20,8 @@ use crate::trainer::Trainer;
 use anyhow::{Context, bail};
 use std::sync::Arc;
 use tokio::net::TcpListener;
-use tweezer_gym::ObservationBounds;
+use tweezer_gym::StepBounds;
 use tweezer_process::stop_signal;
-use tweezer_proto::pb::learner_server::LearnerServer;
 use tweezer_rpc::{Security, ServerSecurity};
 
 /// How long clients may take to hang up once the learner stops.
@@ -131,7 +130,9 @@ pub fn serve(file: LearnerFile, start: Start, security: &Security) -> anyhow::Re
         };
         let server = listener_security.serve(
             listener,
-            LearnerServer::new(LearnerService::new(shared.clone())),
+            LearnerService::new(shared.clone())
+                .with_max_message_bytes(file.learner.max_message_bytes)
+                .into_server(),
             shutdown,
         );
         // Clients get a grace period to hang up; one that never does (an
@@ -204,19 +205,15 @@ fn shared_state(
     let limiter = SharedLimiter::new(limiter, replay.len());
     let run_log = RunLog::append(&run_dir.run_log())
         .with_context(|| format!("cannot open {}", run_dir.run_log().display()))?;
-    let shared = LearnerState::new(
-        replay,
-        Some(limiter),
-        ObservationBounds::for_config(&file.env),
-    )
-    .with_uniform_steps(config.uniform_steps)
-    .with_snapshots(snapshots)
-    .with_run_log(run_log);
+    let shared = LearnerState::new(replay, Some(limiter), StepBounds::for_config(&file.env))
+        .with_uniform_steps(config.uniform_steps)
+        .with_snapshots(snapshots)
+        .with_run_log(run_log);
     Ok(match resumed {
         Some(l) => shared.with_restored(
             l.header.steps_inserted,
             l.header.episodes.clone(),
-            &l.header.actors,
+            &l.header.sessions,
         ),
         None => shared,
     })

@@ -10,7 +10,7 @@ use std::sync::Arc;
 use tokio_stream::Stream;
 use tonic::{Code, Request, Response, Status, Streaming};
 use tweezer_proto::pb;
-use tweezer_proto::pb::learner_server::Learner;
+use tweezer_proto::pb::learner_server::{Learner, LearnerServer};
 
 /// Largest `data` of one snapshot chunk: 1 MiB, well inside gRPC's default
 /// 4 MiB message limit.
@@ -20,12 +20,29 @@ pub const CHUNK_BYTES: usize = 1 << 20;
 #[derive(Debug, Clone)]
 pub struct LearnerService {
     shared: Arc<LearnerState>,
+    max_message_bytes: usize,
 }
 
 impl LearnerService {
-    /// The service for `shared`.
+    /// The service for `shared`, decoding step batches of up to gRPC's
+    /// default 4 MiB.
     pub fn new(shared: Arc<LearnerState>) -> Self {
-        Self { shared }
+        Self {
+            shared,
+            max_message_bytes: tweezer_proto::DEFAULT_MAX_MESSAGE_BYTES,
+        }
+    }
+
+    /// Decodes step batches of up to `bytes` (and tells actors so).
+    pub fn with_max_message_bytes(mut self, bytes: usize) -> Self {
+        self.max_message_bytes = bytes;
+        self
+    }
+
+    /// The gRPC server of this service, with its message limit.
+    pub fn into_server(self) -> LearnerServer<Self> {
+        let limit = self.max_message_bytes;
+        LearnerServer::new(self).max_decoding_message_size(limit)
     }
 }
 
@@ -67,12 +84,16 @@ impl Learner for LearnerService {
         &self,
         request: Request<Streaming<pb::StepBatch>>,
     ) -> Result<Response<AckStream>, Status> {
+        let token = request
+            .extensions()
+            .get::<tweezer_rpc::Caller>()
+            .map(|caller| caller.name.clone());
         let mut inbound = request.into_inner();
         let shared = self.shared.clone();
         let (tx, rx) = tokio::sync::mpsc::channel(4);
         tokio::spawn(async move {
             shared.stream_opened();
-            let mut actor = None;
+            let mut session = None;
             loop {
                 let batch = tokio::select! {
                     message = inbound.message() => match message {
@@ -82,7 +103,7 @@ impl Learner for LearnerService {
                             if let Some(refusal) = unreadable_batch(&status) {
                                 shared.count_malformed();
                                 tracing::warn!(
-                                    actor = actor.as_deref().unwrap_or("(not yet known)"),
+                                    actor = session.as_ref().map_or("(not yet known)", |(id, _): &(String, u64)| id.as_str()),
                                     code = ?refusal.code(),
                                     message = refusal.message(),
                                     "refused an unreadable step batch"
@@ -99,13 +120,13 @@ impl Learner for LearnerService {
                         break;
                     }
                 };
-                let (s, t) = (shared.clone(), tx.clone());
+                let (s, t, token) = (shared.clone(), tx.clone(), token.clone());
                 let arrived = std::time::Instant::now();
-                let mut bound = actor.clone();
+                let mut bound = session.clone();
                 let result = tokio::task::spawn_blocking(move || {
                     let ack = match batch_from_wire(&batch, s.bounds()) {
                         Ok(batch) => s
-                            .accept(batch, &mut bound, || t.is_closed())
+                            .accept(batch, &mut bound, token.as_deref(), || t.is_closed())
                             .map(ack_to_wire)
                             .map_err(refusal_to_status),
                         Err(status) => {
@@ -126,17 +147,21 @@ impl Learner for LearnerService {
                         .await;
                     break;
                 };
-                actor = bound;
+                session = bound;
                 let refused = ack.is_err();
                 if tx.send(ack).await.is_err() || refused {
                     break;
                 }
             }
-            shared.stream_closed(actor.as_deref());
+            shared.stream_closed(session.as_ref());
         });
-        Ok(Response::new(Box::pin(
-            tokio_stream::wrappers::ReceiverStream::new(rx),
-        )))
+        let mut response =
+            Response::new(Box::pin(tokio_stream::wrappers::ReceiverStream::new(rx)) as AckStream);
+        response.metadata_mut().insert(
+            tweezer_proto::MAX_MESSAGE_HEADER,
+            self.max_message_bytes.into(),
+        );
+        Ok(response)
     }
 
     async fn get_snapshot(
@@ -284,12 +309,13 @@ fn unreadable_batch(status: &Status) -> Option<Status> {
 /// An actor's batch from the wire, every field checked.
 fn batch_from_wire(
     batch: &pb::StepBatch,
-    bounds: &tweezer_gym::ObservationBounds,
+    bounds: &tweezer_gym::StepBounds,
 ) -> Result<ActorBatch, Status> {
     let (actor, sequence, steps) =
         tweezer_proto::step_batch_from_wire(batch, bounds, tweezer_proto::MAX_BATCH_STEPS)?;
     Ok(ActorBatch {
         actor,
+        session: batch.session,
         sequence,
         steps,
     })
@@ -308,6 +334,8 @@ fn ack_to_wire(ack: Ack) -> pb::StepAck {
 fn refusal_to_status(refusal: Refusal) -> Status {
     match refusal {
         Refusal::Malformed(reason) => Status::invalid_argument(reason),
+        Refusal::NotYours(reason) => Status::permission_denied(reason),
+        Refusal::TooManySessions(_) => Status::resource_exhausted(refusal.to_string()),
         Refusal::Closed => Status::cancelled(refusal.to_string()),
         Refusal::ShuttingDown => Status::unavailable(refusal.to_string()),
     }
@@ -337,6 +365,8 @@ fn status_to_wire(s: LearnerStatus) -> pb::LearnerStatus {
         explore_uniformly: s.explore_uniformly,
         paused: s.paused,
         actors: s.actors.into_iter().map(actor_to_wire).collect(),
+        diverged_updates: s.training.diverged_updates,
+        known_actors: s.known_actors as u64,
     }
 }
 
@@ -344,6 +374,8 @@ fn status_to_wire(s: LearnerStatus) -> pb::LearnerStatus {
 fn actor_to_wire(actor: ActorSummary) -> pb::ActorStatus {
     pb::ActorStatus {
         id: actor.id,
+        session: actor.session,
+        token: actor.token.unwrap_or_default(),
         streams: actor.streams,
         steps: actor.steps,
         episodes: actor.episodes,

@@ -74,6 +74,7 @@ pub struct TwinCritic {
 }
 
 /// The learner's networks, their targets and optimisers.
+#[derive(Clone)]
 pub struct Td3 {
     config: Td3Config,
     actor: Actor,

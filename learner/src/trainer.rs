@@ -4,6 +4,7 @@
 
 use crate::checkpoint::{CheckpointHeader, Checkpoints, Loaded};
 use crate::config::LearnerFile;
+use crate::divergence::{DivergenceGuard, Verdict};
 use crate::learner_state::LearnerState;
 use crate::limiter::limiter_state_name;
 use crate::minibatch::minibatch_tensors;
@@ -54,6 +55,7 @@ struct RateMark {
 pub struct Trainer {
     shared: Arc<LearnerState>,
     td3: Td3,
+    guard: DivergenceGuard,
     renderer: Renderer,
     device: Device,
     sampler: SplitMix64,
@@ -101,6 +103,7 @@ impl Trainer {
                 steps_inserted: shared.steps_inserted(),
                 updates: td3.updates(),
             },
+            guard: DivergenceGuard::new(&td3),
             shared,
             td3,
             renderer,
@@ -114,7 +117,8 @@ impl Trainer {
     }
 
     /// Trains until the shared state says stop, then writes a final
-    /// checkpoint. An error (a diverged loss, a full disk) ends training.
+    /// checkpoint. An error (a full disk) ends training; a diverged update
+    /// does not ([`crate::divergence`]).
     pub fn run(mut self) -> anyhow::Result<()> {
         let has_snapshot = self
             .shared
@@ -143,8 +147,7 @@ impl Trainer {
                 .shared
                 .limiter()
                 .is_some_and(|l| l.wait_to_update(Duration::from_millis(100)));
-            if may_update {
-                self.update()?;
+            if may_update && self.update()? {
                 let updates = self.td3.updates();
                 if updates.is_multiple_of(config.metrics_every_updates) {
                     self.report();
@@ -162,8 +165,9 @@ impl Trainer {
         Ok(())
     }
 
-    /// One update on a uniformly sampled batch.
-    fn update(&mut self) -> anyhow::Result<UpdateStats> {
+    /// One update on a uniformly sampled batch; false when it diverged and
+    /// was undone.
+    fn update(&mut self) -> anyhow::Result<bool> {
         let _span = tracing::debug_span!("update", n = self.td3.updates() + 1).entered();
         let started = Instant::now();
         let sampled = self
@@ -175,13 +179,13 @@ impl Trainer {
         if let Some(limiter) = self.shared.limiter() {
             limiter.updated();
         }
-        if !(stats.critic_loss.is_finite() && stats.mean_q.is_finite()) {
-            bail!(
-                "training diverged at update {}: critic loss {}, mean Q {}; the last checkpoint is intact",
-                self.td3.updates(),
-                stats.critic_loss,
-                stats.mean_q
-            );
+        let diverged_at = self.td3.updates();
+        match self.guard.check(&mut self.td3, &stats) {
+            Verdict::Finite => {}
+            verdict => {
+                self.diverged(verdict, diverged_at, &stats);
+                return Ok(false);
+            }
         }
         let s = &mut self.sums;
         s.n += 1;
@@ -195,7 +199,54 @@ impl Trainer {
             s.actor_n += 1;
         }
         self.shared.training().updates = self.td3.updates();
-        Ok(stats)
+        Ok(true)
+    }
+
+    /// Reports an update that diverged (the networks are rolled back
+    /// already), and pauses learning when rolling back did not help.
+    fn diverged(&mut self, verdict: Verdict, at: u64, stats: &UpdateStats) {
+        let (Verdict::RolledBack { lost } | Verdict::GiveUp { lost }) = verdict else {
+            return;
+        };
+        {
+            let mut training = self.shared.training();
+            training.updates = self.td3.updates();
+            training.diverged_updates += 1;
+        }
+        tracing::warn!(
+            update = at,
+            critic_loss = stats.critic_loss,
+            mean_q = stats.mean_q,
+            rolled_back_to = self.td3.updates(),
+            lost,
+            "an update diverged: the networks are rolled back and the batch dropped"
+        );
+        if matches!(verdict, Verdict::GiveUp { .. }) {
+            self.shared.set_paused(true);
+            tracing::error!(
+                rollbacks = crate::divergence::MAX_ROLLBACKS,
+                updates = self.td3.updates(),
+                "training keeps diverging after rollbacks: learning is paused with the last good networks; check the TD3 settings (learning rates, reward_scale), then ResumeLearning"
+            );
+        }
+        #[derive(Serialize)]
+        struct DivergenceLine {
+            update: u64,
+            critic_loss: f64,
+            mean_q: f64,
+            rolled_back_to: u64,
+            paused: bool,
+        }
+        self.shared.run_log().write(
+            "divergence",
+            DivergenceLine {
+                update: at,
+                critic_loss: stats.critic_loss,
+                mean_q: stats.mean_q,
+                rolled_back_to: self.td3.updates(),
+                paused: matches!(verdict, Verdict::GiveUp { .. }),
+            },
+        );
     }
 
     /// Insert and sample rates since the last measurement, into status.
@@ -315,7 +366,7 @@ impl Trainer {
                 .snapshots()
                 .map(|s| s.state())
                 .unwrap_or_default(),
-            actors: captured.actors,
+            sessions: captured.actors,
             parts: Vec::new(),
         };
         let mut parts = self.td3.save_state()?;

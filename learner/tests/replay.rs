@@ -224,3 +224,32 @@ fn a_replay_survives_encoding_and_corrupt_bytes_are_refused() {
     scrambled[16..24].copy_from_slice(&u64::MAX.to_le_bytes());
     assert!(Replay::decode(config, &scrambled).is_err());
 }
+
+#[test]
+fn steps_that_never_get_a_successor_do_not_grow_memory_beyond_the_capacity() {
+    let mut replay = small(1000);
+    let mut rng = SplitMix64::new(3);
+    // Real transitions first, so that the sweep has live data around it.
+    for t in 0..100 {
+        replay.insert(0, &step(0, 1, t, 1.0, None)).unwrap();
+    }
+    let legit = replay.bytes();
+    // A client whose steps never link: t never advances on one
+    // environment, or every step comes from a new environment.
+    for i in 0..400_000u32 {
+        replay.insert(1, &step(7, 9, 0, 2.0, None)).unwrap();
+        replay.insert(2, &step(i, 9, 0, 2.0, None)).unwrap();
+        if i % 100_000 == 0 {
+            assert!(replay.bytes() < 1 << 20, "{} bytes", replay.bytes());
+        }
+    }
+    assert!(replay.bytes() < 1 << 20, "{} bytes", replay.bytes());
+    assert!(replay.bytes() >= legit);
+    // What links is still stored and sampled.
+    for t in 0..10 {
+        replay.insert(3, &step(0, 5, t, 4.0, None)).unwrap();
+    }
+    assert_eq!(replay.len(), 9);
+    let batch = replay.sample(16, &mut rng).unwrap();
+    assert!((0..16).all(|i| tag_of(&batch.vectors, i) == 4.0));
+}

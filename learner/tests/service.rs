@@ -4,7 +4,7 @@
 use std::sync::Arc;
 use tokio_stream::wrappers::ReceiverStream;
 use tonic::Code;
-use tweezer_gym::{EnvConfig, ObservationBounds};
+use tweezer_gym::{EnvConfig, StepBounds};
 use tweezer_learner::learner_state::LearnerState;
 use tweezer_learner::loopback::{batches, serve};
 use tweezer_learner::replay::{Replay, ReplayConfig};
@@ -19,7 +19,7 @@ fn ingest() -> Arc<LearnerState> {
     Arc::new(LearnerState::new(
         replay,
         None,
-        ObservationBounds::for_config(&EnvConfig::default()),
+        StepBounds::for_config(&EnvConfig::default()),
     ))
 }
 
@@ -102,7 +102,7 @@ async fn malformed_batches_are_refused_and_never_touch_the_replay() {
     cases.push((spaced, "actor_id"));
     let mut stranger = good[1].clone();
     stranger.actor_id = "actor-c".into();
-    cases.push((stranger, "unknown actor `actor-c`"));
+    cases.push((stranger, "on a stream opened by `actor-b`"));
 
     for (i, (bad, field)) in cases.into_iter().enumerate() {
         let (tx, mut acks) = open(&mut client).await;
@@ -197,7 +197,7 @@ async fn a_producer_held_by_back_pressure_is_released_when_its_actor_goes() {
     let shared = Arc::new(LearnerState::new(
         Replay::new(ReplayConfig::default()),
         Some(SharedLimiter::new(limiter, 0)),
-        ObservationBounds::for_config(&EnvConfig::default()),
+        StepBounds::for_config(&EnvConfig::default()),
     ));
     let addr = serve(shared.clone()).await.unwrap();
     let mut client = LearnerClient::connect(format!("http://{addr}"))
@@ -312,4 +312,147 @@ async fn unreadable_batches_are_refused_with_their_status_and_counted() {
     let batch = batches(&EnvConfig::default(), "actor-a", 1, 1, 8, 1).unwrap();
     tx.send(batch[0].clone()).await.unwrap();
     assert_eq!(acks.message().await.unwrap().unwrap().sequence, 0);
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_reward_no_environment_can_give_is_refused_naming_the_range() {
+    let (ingest, mut client) = connected().await;
+    let mut batch = batches(&EnvConfig::default(), "actor-r", 1, 1, 16, 7).unwrap()[0].clone();
+    batch.steps[3].reward = 1e30;
+    let (tx, mut acks) = open(&mut client).await;
+    tx.send(batch).await.unwrap();
+    let status = acks.message().await.unwrap_err();
+    assert_eq!(status.code(), Code::InvalidArgument);
+    assert!(
+        status.message().contains("steps[3].reward") && status.message().contains("outside ["),
+        "{}",
+        status.message()
+    );
+    assert_eq!((ingest.malformed(), ingest.steps_inserted()), (1, 0));
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn no_session_can_silence_another_and_a_restarted_actor_counts_afresh() {
+    let (ingest, mut client) = connected().await;
+    let sent = batches(&EnvConfig::default(), "victim", 1, 4, 8, 9).unwrap();
+    let send = |client: &mut Client, batch: pb::StepBatch| {
+        let mut client = client.clone();
+        async move {
+            let (tx, mut acks) = open(&mut client).await;
+            tx.send(batch).await.unwrap();
+            acks.message().await.unwrap().unwrap()
+        }
+    };
+    // Another client claims the victim's id with the largest sequence, in
+    // its own session.
+    let mut poison = sent[0].clone();
+    poison.session = 666;
+    poison.sequence = u64::MAX;
+    send(&mut client, poison).await;
+    assert_eq!(ingest.steps_inserted(), 8);
+
+    // The victim's batches are all stored.
+    for batch in &sent[..2] {
+        send(&mut client, batch.clone()).await;
+    }
+    assert_eq!((ingest.steps_inserted(), ingest.duplicates()), (24, 0));
+
+    // Restarted (a new session) with a clock that stepped back: sequences
+    // start low again, and are stored.
+    let mut restarted = sent[2].clone();
+    restarted.session = 4242;
+    restarted.sequence = 0;
+    send(&mut client, restarted).await;
+    assert_eq!((ingest.steps_inserted(), ingest.duplicates()), (32, 0));
+
+    // Within a session, a resent batch is still recognised.
+    send(&mut client, sent[1].clone()).await;
+    assert_eq!((ingest.steps_inserted(), ingest.duplicates()), (32, 1));
+}
+
+#[test]
+fn a_session_stays_with_the_token_that_opened_it() {
+    use tweezer_learner::learner_state::{ActorBatch, Refusal};
+    let ingest = ingest();
+    let steps = tweezer_gym::RandomSteps::new(&EnvConfig::default(), 1, 3)
+        .unwrap()
+        .take(4)
+        .collect::<Vec<_>>();
+    let batch = |session, sequence| ActorBatch {
+        actor: "lab-pc".into(),
+        session,
+        sequence,
+        steps: steps.clone(),
+    };
+    let accept = |batch, token| ingest.accept(batch, &mut None, Some(token), || false);
+    accept(batch(7, 1), "actor-a").unwrap();
+    let refused = accept(batch(7, 2), "actor-b").unwrap_err();
+    assert!(
+        matches!(&refused, Refusal::NotYours(m) if m.contains("`actor-a`")),
+        "{refused:?}"
+    );
+    accept(batch(7, 2), "actor-a").unwrap();
+    accept(batch(8, 1), "actor-b").unwrap();
+    // Session 0 remembers nothing, so any token may use it.
+    accept(batch(0, 1), "actor-a").unwrap();
+    accept(batch(0, 1), "actor-b").unwrap();
+    assert_eq!(ingest.steps_inserted(), 20);
+    let tokens: Vec<_> = ingest
+        .actors()
+        .into_iter()
+        .map(|a| (a.session, a.token))
+        .collect();
+    assert!(tokens.contains(&(7, Some("actor-a".into()))), "{tokens:?}");
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn thousands_of_actor_ids_leave_the_registry_bounded_and_the_status_small() {
+    use tonic_prost::prost::Message;
+    use tweezer_learner::learner_state::{ActorBatch, MAX_SESSIONS, STATUS_ACTORS};
+    let (ingest, mut client) = connected().await;
+    let step = tweezer_gym::RandomSteps::new(&EnvConfig::default(), 1, 3)
+        .unwrap()
+        .next()
+        .unwrap();
+    let n = 30_000;
+    let state = ingest.clone();
+    tokio::task::spawn_blocking(move || {
+        for k in 0..n {
+            let batch = ActorBatch {
+                actor: format!("actor-{k:05}-with-a-long-pod-name-for-good-measure"),
+                session: k + 1,
+                sequence: 1,
+                steps: vec![step.clone()],
+            };
+            let mut stream = None;
+            state.stream_opened();
+            state.accept(batch, &mut stream, None, || false).unwrap();
+            state.stream_closed(stream.as_ref());
+        }
+    })
+    .await
+    .unwrap();
+    let status = client
+        .get_status(pb::LearnerStatusRequest {})
+        .await
+        .unwrap()
+        .into_inner();
+    let known = status.known_actors as usize;
+    assert!(
+        (MAX_SESSIONS * 9 / 10..=MAX_SESSIONS).contains(&known),
+        "{known}"
+    );
+    assert_eq!(status.actors.len(), STATUS_ACTORS);
+    assert!(
+        status.encoded_len() < 64 << 10,
+        "{} bytes",
+        status.encoded_len()
+    );
+    // The newest are kept; the oldest were forgotten.
+    assert!(
+        status.actors.iter().all(|a| a.session > n - known as u64),
+        "{:?}",
+        status.actors.first()
+    );
+    assert_eq!(ingest.steps_inserted(), n);
 }

@@ -145,3 +145,61 @@ fn bad_hyper_parameters_are_named() {
         assert!(err.to_string().contains(field), "{err}");
     }
 }
+
+#[test]
+fn a_diverged_update_rolls_back_to_the_last_good_networks_and_repeated_ones_give_up() {
+    use tweezer_learner::divergence::{DivergenceGuard, GOOD_RUN, MAX_ROLLBACKS, Verdict};
+    let device = Device::flex().autodiff();
+    let (h, w) = (16, 20);
+    let mut td3 = Td3::new(Td3Config::default(), h, w, &device).unwrap();
+    let mut guard = DivergenceGuard::new(&td3);
+    let batch = |reward: f32| {
+        let image = || Tensor::<4>::random([4, 1, h, w], Distribution::Bernoulli(0.1), &device);
+        let pair = || Tensor::<2>::random([4, 2], Distribution::Uniform(-1.0, 1.0), &device);
+        Minibatch {
+            image: image(),
+            vector: pair(),
+            action: pair(),
+            reward: Tensor::<2>::full([4, 1], reward, &device),
+            terminated: Tensor::<2>::zeros([4, 1], &device),
+            next_image: image(),
+            next_vector: pair(),
+        }
+    };
+    let probe = batch(0.0);
+    let act = |td3: &Td3| {
+        values(
+            td3.policy()
+                .forward(probe.image.clone().valid(), probe.vector.clone().valid()),
+        )
+    };
+    // A reward whose square overflows f32: the critic loss is infinite.
+    let poisoned = |td3: &mut Td3, guard: &mut DivergenceGuard| {
+        let stats = td3.update(batch(1e38));
+        assert!(!stats.critic_loss.is_finite());
+        guard.check(td3, &stats)
+    };
+
+    let fresh = act(&td3);
+    assert_eq!(
+        poisoned(&mut td3, &mut guard),
+        Verdict::RolledBack { lost: 1 }
+    );
+    assert_eq!((act(&td3), td3.updates()), (fresh.clone(), 0));
+
+    for _ in 0..GOOD_RUN {
+        let stats = td3.update(batch(1.0));
+        assert_eq!(guard.check(&mut td3, &stats), Verdict::Finite);
+    }
+    let trained = act(&td3);
+    assert_ne!(trained, fresh);
+    for _ in 1..MAX_ROLLBACKS {
+        assert_eq!(
+            poisoned(&mut td3, &mut guard),
+            Verdict::RolledBack { lost: 1 }
+        );
+        assert_eq!((act(&td3), td3.updates()), (trained.clone(), GOOD_RUN));
+    }
+    assert_eq!(poisoned(&mut td3, &mut guard), Verdict::GiveUp { lost: 1 });
+    assert_eq!(act(&td3), trained);
+}

@@ -2,7 +2,9 @@
 //! field, e.g. `steps[3].observation.centres: odd length 7`.
 
 use crate::pb;
-use tweezer_gym::{Action, EpisodeEnd, Observation, ObservationBounds, Outcome, StepRecord};
+use tweezer_gym::{
+    Action, EpisodeEnd, Observation, ObservationBounds, Outcome, StepBounds, StepRecord,
+};
 
 /// A malformed message: which field, and what is wrong with it.
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
@@ -100,21 +102,22 @@ fn end_outcome(wire: i32, terminated: bool, truncated: bool) -> Result<Option<Ou
 /// Decodes and validates one step; `field` names it in errors.
 pub fn step_from_wire(
     msg: &pb::Step,
-    bounds: &ObservationBounds,
+    bounds: &StepBounds,
     field: &str,
 ) -> Result<StepRecord, WireError> {
     let observation = msg
         .observation
         .as_ref()
         .ok_or_else(|| WireError::new(&format!("{field}.observation"), "missing"))?;
-    let observation = observation_from_wire(observation, bounds, &format!("{field}.observation"))?;
+    let observation = observation_from_wire(
+        observation,
+        &bounds.observation,
+        &format!("{field}.observation"),
+    )?;
     let action = action_from_wire(msg.action.as_ref(), &format!("{field}.action"))?;
-    if !msg.reward.is_finite() {
-        return Err(WireError::new(
-            &format!("{field}.reward"),
-            format!("not finite ({})", msg.reward),
-        ));
-    }
+    bounds
+        .check_reward(msg.reward)
+        .map_err(|reason| WireError::new(&format!("{field}.reward"), reason))?;
     let kind = match (msg.terminated, msg.truncated) {
         (true, true) => {
             return Err(WireError::new(
@@ -142,7 +145,7 @@ pub fn step_from_wire(
         }
         (Some(outcome), Some(last)) => Some(EpisodeEnd {
             outcome,
-            final_observation: observation_from_wire(last, bounds, &final_field)?,
+            final_observation: observation_from_wire(last, &bounds.observation, &final_field)?,
         }),
     };
     Ok(StepRecord {
@@ -213,7 +216,7 @@ pub fn check_actor_id(id: &str) -> Result<(), WireError> {
 /// steps.
 pub fn step_batch_from_wire(
     msg: &pb::StepBatch,
-    bounds: &ObservationBounds,
+    bounds: &StepBounds,
     max_steps: usize,
 ) -> Result<(String, u64, Vec<StepRecord>), WireError> {
     check_actor_id(&msg.actor_id)?;
@@ -241,8 +244,8 @@ mod tests {
     use prost::Message;
     use tweezer_gym::EnvConfig;
 
-    fn bounds() -> ObservationBounds {
-        ObservationBounds::for_config(&EnvConfig::default())
+    fn bounds() -> StepBounds {
+        StepBounds::for_config(&EnvConfig::default())
     }
 
     fn observation() -> Observation {
@@ -334,6 +337,11 @@ mod tests {
         m.reward = f32::NAN;
         assert_eq!(field_of(&m), "steps[4].reward");
 
+        // Finite, but more than any step of this environment can earn.
+        let mut m = good.clone();
+        m.reward = 1e30;
+        assert_eq!(field_of(&m), "steps[4].reward");
+
         let mut m = good.clone();
         m.terminated = true;
         m.truncated = true;
@@ -380,6 +388,7 @@ mod tests {
     fn batches_are_checked_whole() {
         let batch = pb::StepBatch {
             actor_id: "actor-1".into(),
+            session: 3,
             sequence: 9,
             steps: vec![step_to_wire(&step(None)); 3],
         };

@@ -16,6 +16,13 @@ pub use convert::{
 };
 pub use snapshot_download::{DownloadError, download_snapshot};
 
+/// The response header of `StreamSteps` that gives the largest `StepBatch`
+/// the learner decodes, in bytes.
+pub const MAX_MESSAGE_HEADER: &str = "tweezer-max-message-bytes";
+
+/// The largest message a gRPC peer takes unless it says otherwise (4 MiB).
+pub const DEFAULT_MAX_MESSAGE_BYTES: usize = 4 << 20;
+
 /// The encoded `FileDescriptorSet` of every proto file, for gRPC server
 /// reflection.
 pub const FILE_DESCRIPTOR_SET: &[u8] =

@@ -222,12 +222,17 @@ pub fn start_learner(args: &[&str]) -> (Child, String) {
 /// `args` (`--rate`, `--records`, ...), its standard error to `log` if
 /// given; returns it, once it listens, and the address it listens on.
 pub fn start_agent(args: &[&str], log: Option<&Path>) -> (Child, String) {
-    let security = credentials().file("server");
     let config = credentials().dir.join("agent-control.toml");
-    let config = config.to_str().expect("a UTF-8 path").to_string();
+    start_configured_agent(config.to_str().expect("a UTF-8 path"), args, log)
+}
+
+/// [`start_agent`] with the config file `config` instead of
+/// [`AGENT_CONTROL`]'s.
+pub fn start_configured_agent(config: &str, args: &[&str], log: Option<&Path>) -> (Child, String) {
+    let security = credentials().file("server");
     let mut all = vec![
         "--config",
-        &config,
+        config,
         "serve",
         "--twin",
         "--greedy",

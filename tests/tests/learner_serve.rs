@@ -3,6 +3,7 @@
 //! checkpoint cut short.
 
 use std::path::{Path, PathBuf};
+use std::time::Duration;
 use tweezer_gym::{
     Action, EnvConfig, EvalSummary, Greedy, Observation, Policy, Renderer, SplitMix64,
     UniformRandom, VecEnv, evaluate,
@@ -121,10 +122,24 @@ fn run_dir() -> (tempfile::TempDir, PathBuf, PathBuf) {
     (dir, run, config)
 }
 
+/// The session [`feed`]'s batches belong to.
+const SESSION: u64 = 0x5e55_1011;
+
 /// Streams steps from 8 environments as actor `actor` until the learner has
 /// made `updates` updates; returns the last status. Actions are uniformly
 /// random while the learner says so, then greedy plus Gaussian noise.
 async fn feed(learner: &Learner, actor: &str, updates: u64) -> pb::LearnerStatus {
+    feed_until(learner, actor, |s| s.updates >= updates).await
+}
+
+/// Streams steps as [`feed`] does until the learner's status satisfies
+/// `done`, checked after every acknowledgement and every second while one
+/// is held back.
+async fn feed_until(
+    learner: &Learner,
+    actor: &str,
+    done: impl Fn(&pb::LearnerStatus) -> bool,
+) -> pb::LearnerStatus {
     let mut client = learner.client().await;
     let mut envs = VecEnv::new(&tiny_env(), 8, 11).unwrap();
     let mut rng = SplitMix64::new(5);
@@ -159,16 +174,26 @@ async fn feed(learner: &Learner, actor: &str, updates: u64) -> pb::LearnerStatus
         }
         tx.send(pb::StepBatch {
             actor_id: actor.into(),
+            session: SESSION,
             sequence,
             steps,
         })
         .await
         .unwrap();
-        let ack = acks.message().await.unwrap().unwrap();
+        let ack = loop {
+            let wait = tokio::time::timeout(Duration::from_secs(1), acks.message());
+            if let Ok(ack) = wait.await {
+                break ack.unwrap().unwrap();
+            }
+            let status = learner.status().await;
+            if done(&status) {
+                return status;
+            }
+        };
         assert_eq!(ack.sequence, sequence);
         uniform = ack.explore_uniformly;
         let status = learner.status().await;
-        if status.updates >= updates {
+        if done(&status) {
             return status;
         }
     }
@@ -410,6 +435,7 @@ async fn resumes_from_the_newest_whole_checkpoint() {
     let steps = envs.by_ref().take(4).map(|r| step_to_wire(&r)).collect();
     tx.send(pb::StepBatch {
         actor_id: "actor-0".into(),
+        session: SESSION,
         sequence: 0,
         steps,
     })
@@ -469,6 +495,38 @@ async fn a_sigkill_after_more_snapshots_than_kept_since_the_checkpoint_leaves_th
     let (exit, log) = learner.stop();
     assert!(exit.success(), "{log}");
     assert!(log.contains("resuming"), "{log}");
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn updates_that_diverge_are_rolled_back_then_learning_pauses_and_the_learner_keeps_serving() {
+    let (dir, run, config) = run_dir();
+    // Rewards scaled past f32's range: every critic loss is infinite.
+    let tiny = std::fs::read_to_string(&config).unwrap();
+    std::fs::write(
+        &config,
+        tiny.replace("reward_scale = 0.1", "reward_scale = 1e38"),
+    )
+    .unwrap();
+    let learner = Learner::fresh(dir.path(), &config, &run);
+    let paused = feed_until(&learner, "actor-0", |s| s.paused).await;
+    assert!(paused.diverged_updates >= 5, "{paused:?}");
+    assert_eq!(paused.updates, 0, "every update was rolled back");
+
+    // Still serving: the first snapshot downloads, status answers, and a
+    // SIGTERM ends the process cleanly with a checkpoint of the good
+    // networks.
+    let mut client = learner.client().await;
+    let (info, bytes) = download_snapshot(&mut client, Selector::Version(1))
+        .await
+        .unwrap();
+    assert_eq!((info.version, info.size_bytes), (1, bytes.len() as u64));
+    assert!(learner.status().await.paused);
+    let (exit, log) = learner.stop();
+    assert!(exit.success(), "{log}");
+    assert!(log.contains("learning is paused"), "{log}");
+    assert_eq!(checkpoints(&run).len(), 1, "{log}");
+    let metrics = std::fs::read_to_string(run.join("metrics.jsonl")).unwrap();
+    assert!(metrics.contains("\"divergence\""), "{metrics}");
 }
 
 #[test]

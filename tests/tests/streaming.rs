@@ -91,3 +91,60 @@ fn an_actor_streams_through_a_learner_restart_without_losing_or_repeating_steps(
     assert!(learned.updates > 0);
     assert!(stop(learner).0.success());
 }
+
+/// A legitimate dense field (200 spheres nearly all in view) with 4,096
+/// steps a batch: batches of several MiB. The learner takes 1 MiB messages;
+/// the actor learns that when it connects and splits its batches to fit.
+#[test]
+fn an_actor_splits_dense_batches_to_the_learners_message_limit() {
+    let dir = tempfile::tempdir().unwrap();
+    let addr = format!("127.0.0.1:{}", free_port());
+    let env = "[env]\nworld_px = [1400.0, 1200.0]\nmin_free_spheres = 200\n\
+               max_free_spheres = 200\n[env.image]\nwidth = 20\nheight = 16\n";
+    let learner_config = write(
+        &dir.path().join("learner.toml"),
+        &format!(
+            "{env}\n[learner]\nlisten = \"{addr}\"\nmax_message_bytes = 1048576\n\
+             [learner.limiter]\nupdates_per_insert = 0.0001\n\
+             [learner.checkpoints]\nevery_seconds = 0\n"
+        ),
+    );
+    let actor_config = write(
+        &dir.path().join("actor.toml"),
+        &format!(
+            "{env}\n[actor]\nlearner = \"{addr}\"\nid = \"dense\"\n\
+             envs = 16\nbatch_steps = 4096\nmax_unacked = 2\n"
+        ),
+    );
+    let (learner, _) = start_learner(&[
+        "--config",
+        &learner_config,
+        "--run-dir",
+        dir.path().join("run").to_str().unwrap(),
+    ]);
+    let output = Command::new(binary("actor"))
+        .args(["--config", &actor_config, "run", "--steps", "8192"])
+        .args(["--security", &credentials().file("actor")])
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert!(output.status.success(), "actor failed: {stderr}");
+    let report: serde_json::Value = serde_json::from_slice(&output.stdout).unwrap();
+    assert_eq!(report["steps_acked"], 8192, "{report}");
+    assert_eq!(report["reconnects"], 0, "{report}\n{stderr}");
+    assert!(
+        report["batches_sent"].as_u64().unwrap() > 8,
+        "8,192 dense steps fit in two 1 MiB messages? {report}"
+    );
+    let runtime = tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()
+        .unwrap();
+    let stored = status(&runtime, &addr).unwrap();
+    assert_eq!(
+        (stored.steps_inserted, stored.malformed_batches),
+        (8192, 0),
+        "{stored:?}"
+    );
+    assert!(stop(learner).0.success());
+}

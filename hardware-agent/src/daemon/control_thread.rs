@@ -1,7 +1,7 @@
 //! The thread that owns the instrument and the policy: it runs the jobs the
 //! service hands it, one at a time, and keeps the shared status current.
 
-use super::state::{DaemonState, State, Telemetry};
+use super::state::{DaemonState, Telemetry};
 use kdc101::apt::StopMode;
 use std::sync::Arc;
 use std::sync::atomic::Ordering;
@@ -124,13 +124,15 @@ impl ControlThread {
             &self.config.env,
             Some(&self.security),
         );
-        let mut status = self.shared.status();
-        status.state = State::Idle;
-        let policy = loaded.map_err(|e| JobError::Invalid(e.to_string()))?;
-        tracing::info!(policy = %policy.description, "policy loaded");
-        status.policy_version = policy.version;
-        status.policy = policy.description.clone();
-        self.policy = policy;
+        let result = loaded.map_err(|e| JobError::Invalid(e.to_string()));
+        if let Ok(policy) = &result {
+            tracing::info!(policy = %policy.description, "policy loaded");
+            let mut status = self.shared.status();
+            status.policy_version = policy.version;
+            status.policy = policy.description.clone();
+        }
+        self.shared.job_done();
+        self.policy = result?;
         Ok(())
     }
 
@@ -140,9 +142,8 @@ impl ControlThread {
             .instrument
             .set_overlay(spec)
             .map_err(|e| JobError::Invalid(e.to_string()));
-        let mut status = self.shared.status();
-        status.state = State::Idle;
-        status.virtual_obstacles = self.instrument.overlay_len();
+        self.shared.status().virtual_obstacles = self.instrument.overlay_len();
+        self.shared.job_done();
         result
     }
 
@@ -196,7 +197,7 @@ impl ControlThread {
         let offset = match self.target_offset(target, twin_seed) {
             Ok(offset) => offset,
             Err(e) => {
-                self.shared.status().state = State::Idle;
+                self.shared.job_done();
                 let _ = reply.send(Err(e));
                 return;
             }
@@ -226,39 +227,28 @@ impl ControlThread {
             &shared.halt,
             |log| report_step(&shared, episode, log),
         );
-        let mut status = self.shared.status();
-        match result {
+        let ending = match result {
             Ok((summary, files)) => {
                 tracing::info!(episode, ending = ?summary.ending, steps = summary.steps, record = %files.record.display(), "episode ended");
                 let _ = self
                     .shared
                     .telemetry
                     .send(final_telemetry(episode, &summary));
-                status.state = match &summary.ending {
-                    Ending::EmergencyStopped(_) => State::EmergencyStopped,
-                    Ending::Fault(_) | Ending::TrapLost => State::Fault,
-                    _ => State::Idle,
-                };
-                status.message = match &summary.ending {
-                    Ending::EmergencyStopped(reason) | Ending::Fault(reason) => reason.clone(),
-                    Ending::TrapLost => "the trapped sphere was lost".into(),
-                    _ => String::new(),
-                };
-                status.period_ms = summary.timing.period_ms_mean;
+                self.shared.status().period_ms = summary.timing.period_ms_mean;
                 match summary.ending {
                     Ending::Success => shared_count(&self.shared.successes),
                     Ending::Collision => shared_count(&self.shared.collisions),
                     _ => {}
                 }
-                status.last_ending = Some(summary.ending);
+                Ok(summary.ending)
             }
             Err(e) => {
                 tracing::error!(%e, "episode failed");
-                status.state = State::Fault;
-                status.message = e.to_string();
-                status.last_ending = Some(Ending::Fault(e.to_string()));
+                Err(e.to_string())
             }
-        }
+        };
+        self.shared.episode_done(&ending);
+        self.shared.status().last_ending = Some(ending.unwrap_or_else(Ending::Fault));
     }
 }
 

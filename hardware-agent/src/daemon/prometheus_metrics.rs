@@ -16,7 +16,7 @@ pub fn prometheus(shared: Arc<DaemonState>) -> Prometheus {
     );
     metrics.samples(move || {
         let status = shared.status().clone();
-        let state = |s: State| f64::from(u8::from(status.state == s));
+        let state = |s: State| f64::from(u8::from(status.state() == s));
         vec![
             MetricSample::counter("episodes", "Episodes started.", status.episode),
             MetricSample::counter(

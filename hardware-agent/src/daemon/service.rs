@@ -2,7 +2,7 @@
 //! halt requests out, the shared status back as wire types.
 
 use super::control_thread::{Job, JobError, Target};
-use super::state::{DaemonState, State, Status, Telemetry};
+use super::state::{Activity, DaemonState, State, Status, Telemetry};
 use std::pin::Pin;
 use std::sync::Arc;
 use std::sync::mpsc::Sender;
@@ -43,11 +43,11 @@ impl AgentService {
     /// and waits for its answer.
     async fn submit(
         &self,
-        state: State,
+        activity: Activity,
         job: impl FnOnce(oneshot::Sender<Result<(), JobError>>) -> Job,
     ) -> Result<(), RpcStatus> {
         self.shared
-            .claim(state)
+            .claim(activity)
             .map_err(RpcStatus::failed_precondition)?;
         let (reply, answer) = oneshot::channel();
         self.jobs
@@ -105,7 +105,7 @@ impl HardwareAgent for AgentService {
             None => None,
         };
         let twin_seed = request.twin_seed;
-        self.submit(State::Running, |reply| Job::Start {
+        self.submit(Activity::Running, |reply| Job::Start {
             target,
             twin_seed,
             reply,
@@ -118,10 +118,10 @@ impl HardwareAgent for AgentService {
         &self,
         _: Request<pb::StopEpisodeRequest>,
     ) -> Result<Response<pb::AgentStatus>, RpcStatus> {
-        if self.shared.status().state == State::Running {
+        if self.shared.status().activity == Activity::Running {
             self.shared.halt.request(HaltKind::Stop);
             let deadline = Instant::now() + STOP_WAIT;
-            while self.shared.status().state == State::Running && Instant::now() < deadline {
+            while self.shared.status().activity == Activity::Running && Instant::now() < deadline {
                 tokio::time::sleep(Duration::from_millis(5)).await;
             }
         }
@@ -137,22 +137,10 @@ impl HardwareAgent for AgentService {
         if reason.is_empty() {
             reason = "emergency stop".into();
         }
-        // The request first, then the motors, from here: the loop may be
-        // anywhere, and it checks for the request after every command, so
-        // no command of its can follow this stop unseen.
-        self.shared
-            .halt
-            .request(HaltKind::Emergency(reason.clone()));
-        let sent = self.shared.stopper.stop_now();
+        // The loop may be anywhere: it checks for the request after every
+        // command, so no command of its can follow this stop unseen.
+        let sent = self.shared.emergency_stop(reason.clone());
         tracing::warn!(%reason, sent = sent.is_ok(), "emergency stop");
-        {
-            let mut status = self.shared.status();
-            status.state = State::EmergencyStopped;
-            status.message = match sent {
-                Ok(()) => reason,
-                Err(e) => format!("{reason} (the stop could not be sent to a controller: {e})"),
-            };
-        }
         Ok(self.status())
     }
 
@@ -160,24 +148,10 @@ impl HardwareAgent for AgentService {
         &self,
         _: Request<pb::ResetEmergencyStopRequest>,
     ) -> Result<Response<pb::AgentStatus>, RpcStatus> {
-        let mut status = self.shared.status();
-        match status.state {
-            State::EmergencyStopped | State::Fault => {}
-            State::Running => {
-                return Err(RpcStatus::failed_precondition(
-                    "an episode is running: stop it first",
-                ));
-            }
-            State::Idle | State::Loading => {
-                drop(status);
-                return Ok(self.status());
-            }
-        }
-        self.shared.halt.clear();
-        status.state = State::Idle;
-        status.message.clear();
-        let reply = status_to_wire(&status);
-        Ok(Response::new(reply))
+        self.shared
+            .reset()
+            .map_err(RpcStatus::failed_precondition)?;
+        Ok(self.status())
     }
 
     async fn load_policy(
@@ -197,7 +171,7 @@ impl HardwareAgent for AgentService {
                 ));
             }
         };
-        self.submit(State::Loading, |reply| Job::LoadPolicy { choice, reply })
+        self.submit(Activity::Loading, |reply| Job::LoadPolicy { choice, reply })
             .await?;
         Ok(self.status())
     }
@@ -228,7 +202,7 @@ impl HardwareAgent for AgentService {
                 to_um: end(&w.to_um, "to_um")?,
             });
         }
-        self.submit(State::Loading, |reply| Job::SetOverlay { spec, reply })
+        self.submit(Activity::Loading, |reply| Job::SetOverlay { spec, reply })
             .await?;
         Ok(self.status())
     }
@@ -310,7 +284,7 @@ fn ending_to_wire(ending: &Ending) -> pb::Outcome {
 
 /// The status on the wire.
 fn status_to_wire(status: &Status) -> pb::AgentStatus {
-    let state = match status.state {
+    let state = match status.state() {
         State::Idle => pb::AgentState::Idle,
         State::Running => pb::AgentState::Running,
         State::EmergencyStopped => pb::AgentState::EmergencyStopped,

@@ -1,5 +1,12 @@
 //! What the service and the control thread share: the status, the halt
 //! request, the stopper and the telemetry feed, in domain types.
+//!
+//! The daemon's state is two parts, changed only by the transitions here:
+//! what it is doing ([`Activity`]: one job at a time) and what blocks new
+//! jobs until an operator resets it ([`Latch`]: an emergency stop, or a
+//! fault). A job ending never touches the latch, so an emergency stop that
+//! arrives during a policy load or an overlay change stays in force; the
+//! reported [`State`] is derived from both.
 
 use kdc101::Stopper;
 use serialport::TTYPort;
@@ -14,7 +21,7 @@ use tweezer_rpc::{Histogram, latency_buckets};
 /// Telemetry messages kept for a slow subscriber before it skips ahead.
 const TELEMETRY_BACKLOG: usize = 256;
 
-/// What the agent is doing.
+/// The agent's state as reported: a latch outranks the activity.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum State {
     Idle,
@@ -22,6 +29,26 @@ pub enum State {
     EmergencyStopped,
     Fault,
     Loading,
+}
+
+/// What the agent is doing.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Activity {
+    Idle,
+    /// An episode runs.
+    Running,
+    /// A policy or an overlay is being loaded.
+    Loading,
+}
+
+/// What blocks new jobs until ResetEmergencyStop.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub enum Latch {
+    Clear,
+    /// An emergency stop, with its reason.
+    EmergencyStop(String),
+    /// An episode ended in a fault, with what went wrong.
+    Fault(String),
 }
 
 /// One telemetry message: a step of an episode, or its end.
@@ -60,7 +87,8 @@ pub enum Telemetry {
 /// The agent's status, in domain terms.
 #[derive(Clone, Debug)]
 pub struct Status {
-    pub state: State,
+    pub activity: Activity,
+    pub latch: Latch,
     pub episode: u64,
     pub step: u32,
     pub stage_mm: [f64; 2],
@@ -72,6 +100,19 @@ pub struct Status {
     pub detections: u32,
     pub latency_ms: f64,
     pub virtual_obstacles: usize,
+}
+
+impl Status {
+    /// The state to report.
+    pub fn state(&self) -> State {
+        match (&self.latch, self.activity) {
+            (Latch::EmergencyStop(_), _) => State::EmergencyStopped,
+            (Latch::Fault(_), _) => State::Fault,
+            (Latch::Clear, Activity::Running) => State::Running,
+            (Latch::Clear, Activity::Loading) => State::Loading,
+            (Latch::Clear, Activity::Idle) => State::Idle,
+        }
+    }
 }
 
 /// Shared between the service and the control thread.
@@ -94,7 +135,8 @@ impl DaemonState {
     pub fn new(stopper: Stopper<TTYPort>, policy: &LoadedPolicy, virtual_obstacles: usize) -> Self {
         Self {
             status: Mutex::new(Status {
-                state: State::Idle,
+                activity: Activity::Idle,
+                latch: Latch::Clear,
                 episode: 0,
                 step: 0,
                 stage_mm: [0.0; 2],
@@ -118,23 +160,83 @@ impl DaemonState {
     }
 
     /// Moves the agent from idle to `to` for a job, or says why not: one
-    /// job at a time, none while an emergency stop is in force.
-    pub fn claim(&self, to: State) -> Result<(), String> {
+    /// job at a time, none while a latch is set.
+    pub fn claim(&self, to: Activity) -> Result<(), String> {
         let mut status = self.status();
-        if let Some(HaltKind::Emergency(reason)) = self.halt.pending() {
-            return Err(format!(
-                "emergency stop in force ({reason}); reset it first"
-            ));
+        match &status.latch {
+            Latch::EmergencyStop(reason) => {
+                return Err(format!(
+                    "emergency stop in force ({reason}); reset it first"
+                ));
+            }
+            Latch::Fault(reason) => {
+                return Err(format!("the agent is in fault ({reason}); reset it first"));
+            }
+            Latch::Clear => {}
         }
-        if status.state != State::Idle {
-            let why = if status.message.is_empty() {
-                String::new()
-            } else {
-                format!(": {}", status.message)
+        if status.activity != Activity::Idle {
+            return Err(format!("the agent is busy ({:?})", status.activity));
+        }
+        status.activity = to;
+        Ok(())
+    }
+
+    /// A job ended: the agent is idle again; the latch stays as it is.
+    pub fn job_done(&self) {
+        self.status().activity = Activity::Idle;
+    }
+
+    /// An episode ended with `ending` (`Err`: it could not run to an end).
+    pub fn episode_done(&self, ending: &Result<Ending, String>) {
+        let mut status = self.status();
+        status.activity = Activity::Idle;
+        let latch = match ending {
+            Ok(Ending::EmergencyStopped(reason)) => {
+                // The watchdog's stop, or the operator's already latched.
+                self.halt.request(HaltKind::Emergency(reason.clone()));
+                Latch::EmergencyStop(reason.clone())
+            }
+            Ok(Ending::Fault(reason)) | Err(reason) => Latch::Fault(reason.clone()),
+            Ok(Ending::TrapLost) => Latch::Fault("the trapped sphere was lost".into()),
+            Ok(_) => return,
+        };
+        // An emergency stop outranks a fault and keeps its first reason.
+        if !matches!(status.latch, Latch::EmergencyStop(_)) {
+            status.message = match &latch {
+                Latch::EmergencyStop(r) | Latch::Fault(r) => r.clone(),
+                Latch::Clear => String::new(),
             };
-            return Err(format!("the agent is {:?}{why}", status.state));
+            status.latch = latch;
         }
-        status.state = to;
+    }
+
+    /// Latches an emergency stop: the request first, so that the loop sees
+    /// it after whatever command it is sending, then the motors, from
+    /// here. Whatever the agent is doing, the stop stays in force until
+    /// [`Self::reset`].
+    pub fn emergency_stop(&self, reason: String) -> Result<(), String> {
+        self.halt.request(HaltKind::Emergency(reason.clone()));
+        let sent = self.stopper.stop_now().map_err(|e| e.to_string());
+        let mut status = self.status();
+        let reason = match &sent {
+            Ok(()) => reason,
+            Err(e) => format!("{reason} (the stop could not be sent to a controller: {e})"),
+        };
+        status.message = reason.clone();
+        status.latch = Latch::EmergencyStop(reason);
+        sent
+    }
+
+    /// Clears a latched emergency stop or fault, or says why not: not while
+    /// an episode is still ending.
+    pub fn reset(&self) -> Result<(), String> {
+        let mut status = self.status();
+        if status.activity == Activity::Running {
+            return Err("an episode is running: stop it first".into());
+        }
+        self.halt.clear();
+        status.latch = Latch::Clear;
+        status.message.clear();
         Ok(())
     }
 

@@ -43,6 +43,10 @@ pub enum ReplayError {
 /// No successor yet.
 const NONE: u64 = u64::MAX;
 
+/// Steps awaiting a successor held before the first sweep, and records
+/// allowed beyond twice the capacity.
+const MIN_PENDING_SWEEP: usize = 4096;
+
 /// One stored observation with, for a step, what followed it.
 #[derive(Clone, Copy, Debug)]
 struct Record {
@@ -100,6 +104,8 @@ pub struct Replay {
     centres: VecDeque<[f32; 2]>,
     first_centre: u64,
     pending: HashMap<(Source, u32), Pending>,
+    /// Size of `pending` at which entries whose record is gone are swept.
+    sweep_pending_at: usize,
     /// Step records whose successor has arrived.
     transitions: usize,
     inserted: u64,
@@ -114,10 +120,19 @@ impl Replay {
             centres: VecDeque::new(),
             first_centre: 0,
             pending: HashMap::new(),
+            sweep_pending_at: MIN_PENDING_SWEEP,
             transitions: 0,
             inserted: 0,
             config,
         }
+    }
+
+    /// Most records held: a transition's step record and, at worst, one
+    /// final observation each, plus steps awaiting their successor. Steps
+    /// that never get one (a client whose `t` never advances) count too,
+    /// so memory stays bounded by the capacity whatever clients send.
+    fn record_limit(&self) -> usize {
+        2 * self.config.capacity + MIN_PENDING_SWEEP
     }
 
     /// Complete transitions held.
@@ -236,11 +251,16 @@ impl Replay {
         }
     }
 
-    /// Removes the oldest records while the transition count or the centre
-    /// budget is exceeded.
+    /// Removes the oldest records while the transition count, the record
+    /// limit or the centre budget is exceeded, and forgets steps awaiting a
+    /// successor whose record is gone.
     fn evict(&mut self) {
         let centre_budget = self.config.capacity * self.config.centres_per_transition;
-        while self.transitions > self.config.capacity || self.centres.len() > centre_budget {
+        let record_limit = self.record_limit();
+        while self.transitions > self.config.capacity
+            || self.records.len() > record_limit
+            || self.centres.len() > centre_budget
+        {
             let Some(oldest) = self.records.pop_front() else {
                 break;
             };
@@ -251,6 +271,14 @@ impl Replay {
             let n = usize::from(oldest.centres_len);
             self.centres.drain(..n);
             self.first_centre += n as u64;
+        }
+        // Each live entry names a distinct held record, so after a sweep at
+        // most `record_limit` remain: sweeping at twice what remained keeps
+        // the cost amortised.
+        if self.pending.len() > self.sweep_pending_at {
+            let first_id = self.first_id;
+            self.pending.retain(|_, p| p.id >= first_id);
+            self.sweep_pending_at = (2 * self.pending.len()).max(MIN_PENDING_SWEEP);
         }
     }
 
