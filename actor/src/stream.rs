@@ -467,15 +467,16 @@ impl Actor {
     ) -> Result<(), Broken> {
         let ack = match ack {
             Ok(ack) => ack,
-            // Refusals that sending again cannot mend.
+            // Refusals that sending again cannot mend (RESOURCE_EXHAUSTED:
+            // a batch over the learner's message limit).
             Err(status)
                 if matches!(
                     status.code(),
                     tonic::Code::InvalidArgument
                         | tonic::Code::PermissionDenied
                         | tonic::Code::OutOfRange
-                ) || (status.code() == tonic::Code::ResourceExhausted
-                    && status.message().contains("larger than")) =>
+                        | tonic::Code::ResourceExhausted
+                ) =>
             {
                 return Err(Broken::Fatal(anyhow::anyhow!(
                     "the learner refused a batch ({:?}): {}",

@@ -74,8 +74,10 @@ pub enum Refusal {
     NotYours(String),
     /// The learner tracks as many actor sessions as it may, all of them
     /// streaming.
-    #[error("the learner tracks {0} actor sessions, all with open streams; try again later")]
-    TooManySessions(usize),
+    #[error(
+        "the learner tracks {MAX_SESSIONS} actor sessions, all with open streams; try again later"
+    )]
+    TooManySessions,
     /// The actor went away while the batch waited for the rate limiter.
     #[error("the actor closed its stream")]
     Closed,
@@ -170,6 +172,12 @@ impl KnownActor {
             last_stored: None,
             last_seen: Instant::now(),
         }
+    }
+
+    /// Whether batch `sequence` of this session (numbered `session`) was
+    /// stored before; never in session 0, which asks for no deduplication.
+    fn stored(&self, session: u64, sequence: u64) -> bool {
+        session != 0 && self.last_sequence.is_some_and(|last| sequence <= last)
     }
 }
 
@@ -657,10 +665,9 @@ impl LearnerState {
             Some(_) => {}
             None => {
                 let mut registry = lock(&self.actors);
-                let len = registry.sessions.len();
                 let known = registry
                     .entry(&key, token)
-                    .ok_or(Refusal::TooManySessions(len))?;
+                    .ok_or(Refusal::TooManySessions)?;
                 // Session 0 asks for nothing to be remembered: any token
                 // may use it.
                 match (&known.token, token) {
@@ -702,11 +709,10 @@ impl LearnerState {
         let len = {
             let mut replay = self.replay();
             let mut registry = lock(&self.actors);
-            let len = registry.sessions.len();
             let known = registry
                 .entry(&key, token)
-                .ok_or(Refusal::TooManySessions(len))?;
-            if session != 0 && known.last_sequence.is_some_and(|last| sequence <= last) {
+                .ok_or(Refusal::TooManySessions)?;
+            if known.stored(session, sequence) {
                 // Another stream of the same session stored it meanwhile.
                 self.duplicates.fetch_add(1, Ordering::Relaxed);
                 return Ok(self.ack(sequence));
@@ -740,11 +746,9 @@ impl LearnerState {
     }
 
     fn stored_before(&self, key: &SessionKey, sequence: u64) -> bool {
-        key.1 != 0
-            && lock(&self.actors)
-                .sessions
-                .get(key)
-                .and_then(|a| a.last_sequence)
-                .is_some_and(|last| sequence <= last)
+        lock(&self.actors)
+            .sessions
+            .get(key)
+            .is_some_and(|a| a.stored(key.1, sequence))
     }
 }

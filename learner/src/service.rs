@@ -335,7 +335,8 @@ fn refusal_to_status(refusal: Refusal) -> Status {
     match refusal {
         Refusal::Malformed(reason) => Status::invalid_argument(reason),
         Refusal::NotYours(reason) => Status::permission_denied(reason),
-        Refusal::TooManySessions(_) => Status::resource_exhausted(refusal.to_string()),
+        // Transient: sessions are forgotten as they go idle.
+        Refusal::TooManySessions => Status::unavailable(refusal.to_string()),
         Refusal::Closed => Status::cancelled(refusal.to_string()),
         Refusal::ShuttingDown => Status::unavailable(refusal.to_string()),
     }

@@ -180,12 +180,14 @@ impl Trainer {
             limiter.updated();
         }
         let diverged_at = self.td3.updates();
-        match self.guard.check(&mut self.td3, &stats) {
-            Verdict::Finite => {}
-            verdict => {
-                self.diverged(verdict, diverged_at, &stats);
-                return Ok(false);
-            }
+        let diverged = match self.guard.check(&mut self.td3, &stats) {
+            Verdict::Finite => None,
+            Verdict::RolledBack { lost } => Some((lost, false)),
+            Verdict::GiveUp { lost } => Some((lost, true)),
+        };
+        if let Some((lost, give_up)) = diverged {
+            self.diverged(diverged_at, &stats, lost, give_up);
+            return Ok(false);
         }
         let s = &mut self.sums;
         s.n += 1;
@@ -204,10 +206,7 @@ impl Trainer {
 
     /// Reports an update that diverged (the networks are rolled back
     /// already), and pauses learning when rolling back did not help.
-    fn diverged(&mut self, verdict: Verdict, at: u64, stats: &UpdateStats) {
-        let (Verdict::RolledBack { lost } | Verdict::GiveUp { lost }) = verdict else {
-            return;
-        };
+    fn diverged(&mut self, at: u64, stats: &UpdateStats, lost: u64, give_up: bool) {
         {
             let mut training = self.shared.training();
             training.updates = self.td3.updates();
@@ -221,7 +220,7 @@ impl Trainer {
             lost,
             "an update diverged: the networks are rolled back and the batch dropped"
         );
-        if matches!(verdict, Verdict::GiveUp { .. }) {
+        if give_up {
             self.shared.set_paused(true);
             tracing::error!(
                 rollbacks = crate::divergence::MAX_ROLLBACKS,
@@ -244,7 +243,7 @@ impl Trainer {
                 critic_loss: stats.critic_loss,
                 mean_q: stats.mean_q,
                 rolled_back_to: self.td3.updates(),
-                paused: matches!(verdict, Verdict::GiveUp { .. }),
+                paused: give_up,
             },
         );
     }

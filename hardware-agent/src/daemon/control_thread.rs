@@ -206,7 +206,6 @@ impl ControlThread {
             let mut status = self.shared.status();
             status.episode += 1;
             status.step = 0;
-            status.message.clear();
             status.episode
         };
         let _ = reply.send(Ok(()));

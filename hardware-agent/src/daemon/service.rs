@@ -306,7 +306,7 @@ fn status_to_wire(status: &Status) -> pb::AgentStatus {
             .into(),
         policy_version: status.policy_version,
         loop_period_ms: status.period_ms,
-        message: status.message.clone(),
+        message: status.message().to_string(),
         policy: status.policy.clone(),
         detections: status.detections,
         latency_ms: status.latency_ms,

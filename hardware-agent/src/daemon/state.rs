@@ -96,7 +96,6 @@ pub struct Status {
     pub policy_version: u64,
     pub policy: String,
     pub period_ms: f64,
-    pub message: String,
     pub detections: u32,
     pub latency_ms: f64,
     pub virtual_obstacles: usize,
@@ -111,6 +110,14 @@ impl Status {
             (Latch::Clear, Activity::Running) => State::Running,
             (Latch::Clear, Activity::Loading) => State::Loading,
             (Latch::Clear, Activity::Idle) => State::Idle,
+        }
+    }
+
+    /// Why the agent is stopped or in fault; empty otherwise.
+    pub fn message(&self) -> &str {
+        match &self.latch {
+            Latch::EmergencyStop(reason) | Latch::Fault(reason) => reason,
+            Latch::Clear => "",
         }
     }
 }
@@ -144,7 +151,6 @@ impl DaemonState {
                 policy_version: policy.version,
                 policy: policy.description.clone(),
                 period_ms: 0.0,
-                message: String::new(),
                 detections: 0,
                 latency_ms: 0.0,
                 virtual_obstacles,
@@ -202,10 +208,6 @@ impl DaemonState {
         };
         // An emergency stop outranks a fault and keeps its first reason.
         if !matches!(status.latch, Latch::EmergencyStop(_)) {
-            status.message = match &latch {
-                Latch::EmergencyStop(r) | Latch::Fault(r) => r.clone(),
-                Latch::Clear => String::new(),
-            };
             status.latch = latch;
         }
     }
@@ -222,7 +224,6 @@ impl DaemonState {
             Ok(()) => reason,
             Err(e) => format!("{reason} (the stop could not be sent to a controller: {e})"),
         };
-        status.message = reason.clone();
         status.latch = Latch::EmergencyStop(reason);
         sent
     }
@@ -236,7 +237,6 @@ impl DaemonState {
         }
         self.halt.clear();
         status.latch = Latch::Clear;
-        status.message.clear();
         Ok(())
     }
 
