@@ -82,6 +82,13 @@ impl Instrument {
             let twin = Arc::new(
                 TwinStages::spawn(&config.twin).map_err(|e| fail("cannot start the twin")(&e))?,
             );
+            let [x, y] = twin.ports();
+            // Other APT software can be pointed at these.
+            tracing::info!(
+                x_port = %x.display(),
+                y_port = %y.display(),
+                "the twin's simulated KDC101 controllers are on these pseudo-terminals"
+            );
             let (stages, _) = StagePair::open_paths(twin.ports(), &config.stages, command_interval)
                 .map_err(|e| fail("twin stages")(&e))?;
             let camera = TwinCamera::new(

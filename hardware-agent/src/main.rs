@@ -82,7 +82,9 @@ enum Command {
         log_json: bool,
     },
     /// Find the spheres in PNG or TIFF frames (8 or 16 bits) with the
-    /// configured segmentation.
+    /// configured segmentation. Centres are in pixels with pixel (i, j)
+    /// spanning [i, i+1) × [j, j+1), so its centre is (i + 0.5, j + 0.5);
+    /// subtract 0.5 for the convention of OpenCV, scikit-image and trackpy.
     Segment {
         /// Frame files.
         #[arg(required = true)]

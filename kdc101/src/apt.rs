@@ -8,7 +8,8 @@ mod units;
 
 pub use frame::{AptError, Frame, FrameReader, HEADER_LEN};
 pub use message::{
-    Channel, Command, DcStatus, Direction, HardwareInfo, Reply, StopMode, VelocityParams,
+    Channel, Command, DcStatus, Direction, HardwareInfo, HomeParams, JogParams, Param, Reply,
+    StopMode, VelocityParams,
 };
 pub use units::Z8Units;
 

@@ -3,16 +3,33 @@
 //! clamped to the limit, and motion toward a soft travel limit is refused
 //! (the stage is stopped instead) when the stage could reach it before the
 //! next command plus its braking distance.
+//!
+//! APT replies carry no request ids, so the driver matches them by order,
+//! and after any error (a timeout, half a frame, a garbled or unexpected
+//! reply) it assumes nothing about what is still in flight: before its next
+//! read it gets back in step by purging the port (reading until it has
+//! been quiet for 50 ms, as the protocol asks at open) and asking the
+//! controller to identify itself; everything before that identification is
+//! stale and discarded. A position outside any Z8 actuator's travel is
+//! taken as garbled, never fed to the soft-limit check.
 
 use crate::apt::{
     AptError, Channel, Command, Direction, FrameReader, HardwareInfo, Reply, StopMode,
     VelocityParams, Z8Units,
 };
 use std::io::{ErrorKind, Read, Write};
+use std::ops::RangeInclusive;
 use std::time::{Duration, Instant};
 
 /// The KDC101's one channel.
 pub(crate) const CHANNEL: Channel = Channel(1);
+/// How long the port must stay quiet for a purge to end.
+const QUIET: Duration = Duration::from_millis(50);
+/// Purges and identifications tried before the driver gives up on getting
+/// back in step.
+const RESYNC_ATTEMPTS: usize = 3;
+/// Positions a Z8-series actuator can report, mm (the Z825 travels 25 mm).
+const PLAUSIBLE_MM: RangeInclusive<f64> = -1.0..=26.0;
 
 /// What the stage may do.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -49,6 +66,11 @@ pub struct Axis<P: Read + Write> {
     /// motor crosses the play, so it always lies in [motor - backlash,
     /// motor] (unknown until the first position read).
     carriage: Option<f64>,
+    /// Whether every request sent has had its reply: false after an error
+    /// until the driver is back in step.
+    in_step: bool,
+    /// The controller's serial number, once identified.
+    serial: Option<u32>,
 }
 
 /// What a velocity command did.
@@ -61,8 +83,8 @@ pub enum Commanded {
 }
 
 impl<P: Read + Write> Axis<P> {
-    /// Identifies the controller, enables its channel and sets the velocity
-    /// profile. `timeout` bounds the wait for each reply.
+    /// Purges the port, identifies the controller and enables its channel.
+    /// `timeout` bounds the wait for each reply.
     pub fn connect(
         port: P,
         units: Z8Units,
@@ -78,16 +100,16 @@ impl<P: Read + Write> Axis<P> {
             last_speed: 0.0,
             backlash_mm: 0.0,
             carriage: None,
+            in_step: false,
+            serial: None,
         };
-        stage.send(Command::RequestInfo)?;
-        let Reply::Info(info) = stage.await_reply(|r| matches!(r, Reply::Info(_)))? else {
-            unreachable!("await_reply returns what was asked for")
-        };
+        let info = stage.resync()?;
         // Z8 units and the one channel are the KDC101's: another model
         // would be driven wrongly.
         if !info.model.starts_with("KDC101") {
             return Err(AptError::Model { model: info.model });
         }
+        stage.serial = Some(info.serial);
         stage.send(Command::Enable(CHANNEL, true))?;
         stage.send(Command::RequestEnabled(CHANNEL))?;
         match stage.await_reply(|r| matches!(r, Reply::Enabled(..)))? {
@@ -134,11 +156,22 @@ impl<P: Read + Write> Axis<P> {
 
     /// The position counter (the motor's position), mm.
     pub fn position_mm(&mut self) -> Result<f64, AptError> {
-        self.send(Command::RequestPosition(CHANNEL))?;
-        match self.await_reply(|r| matches!(r, Reply::Position(..)))? {
-            Reply::Position(_, counts) => Ok(self.units.mm(counts)),
-            _ => unreachable!("await_reply returns what was asked for"),
+        if !self.in_step {
+            self.resync()?;
         }
+        self.send(Command::RequestPosition(CHANNEL))?;
+        let Reply::Position(_, counts) = self.await_reply(|r| matches!(r, Reply::Position(..)))?
+        else {
+            unreachable!("await_reply returns what was asked for")
+        };
+        let mm = self.units.mm(counts);
+        if !PLAUSIBLE_MM.contains(&mm) {
+            self.lost_step();
+            return Err(AptError::Unexpected(format!(
+                "a position of {mm:.3} mm, outside any Z8 actuator's travel: a garbled reply"
+            )));
+        }
+        Ok(mm)
     }
 
     /// Moves at `mm_per_s` (sign = direction) until the next command,
@@ -215,14 +248,112 @@ impl<P: Read + Write> Axis<P> {
 
     /// The next reply `wanted` accepts, skipping status messages the
     /// controller sends by itself. A timeout, a malformed reply or any
-    /// other message is an error, and the motor is stopped (immediately)
-    /// before it is returned.
+    /// other message is an error: the motor is stopped (immediately) and
+    /// the driver out of step before it is returned.
     fn await_reply(&mut self, wanted: impl Fn(&Reply) -> bool) -> Result<Reply, AptError> {
         let reply = self.read_reply(wanted);
         if reply.is_err() {
-            let _ = self.send(Command::Stop(CHANNEL, StopMode::Immediate));
+            self.lost_step();
         }
         reply
+    }
+
+    /// After an error: stop the motor, drop any partial frame, and get back
+    /// in step before the next read.
+    fn lost_step(&mut self) {
+        self.in_step = false;
+        self.io.discard();
+        let _ = self.send(Command::Stop(CHANNEL, StopMode::Immediate));
+    }
+
+    /// Gets back in step with the controller: purges the port, asks it to
+    /// identify itself and discards everything before its answer (the
+    /// controller answers in order, so that is all stale). The answer must
+    /// come from the controller identified at connect.
+    fn resync(&mut self) -> Result<HardwareInfo, AptError> {
+        let mut failure = None;
+        for _ in 0..RESYNC_ATTEMPTS {
+            self.purge()?;
+            self.send(Command::RequestInfo)?;
+            match self.read_reply_skipping(|r| matches!(r, Reply::Info(_))) {
+                Ok(Reply::Info(info)) => {
+                    if let Some(serial) = self.serial.filter(|&s| s != info.serial) {
+                        return Err(AptError::Unexpected(format!(
+                            "controller {} answered on the port of controller {serial}",
+                            info.serial
+                        )));
+                    }
+                    self.in_step = true;
+                    return Ok(info);
+                }
+                Ok(_) => unreachable!("read_reply_skipping returns what was asked for"),
+                Err(e @ (AptError::Io(_) | AptError::Device { .. })) => return Err(e),
+                Err(e) => failure = Some(e),
+            }
+        }
+        Err(failure.unwrap_or(AptError::Timeout(self.timeout)))
+    }
+
+    /// Reads and discards whatever the port holds until it has been quiet
+    /// for [`QUIET`], within the reply timeout (at least twice that).
+    fn purge(&mut self) -> Result<(), AptError> {
+        self.io.discard();
+        let started = Instant::now();
+        let mut last_byte = started;
+        let mut chunk = [0u8; 256];
+        loop {
+            match self.io.get_mut().read(&mut chunk) {
+                Ok(0) => {
+                    return Err(AptError::Io(std::io::Error::new(
+                        ErrorKind::UnexpectedEof,
+                        "the port closed",
+                    )));
+                }
+                Ok(_) => last_byte = Instant::now(),
+                Err(e)
+                    if matches!(
+                        e.kind(),
+                        ErrorKind::TimedOut | ErrorKind::WouldBlock | ErrorKind::Interrupted
+                    ) =>
+                {
+                    std::thread::sleep(Duration::from_millis(1));
+                }
+                Err(e) => return Err(e.into()),
+            }
+            if last_byte.elapsed() >= QUIET {
+                return Ok(());
+            }
+            if started.elapsed() >= self.timeout.max(2 * QUIET) {
+                return Err(AptError::Unexpected(format!(
+                    "the controller kept sending for {:?}: the port never went quiet",
+                    started.elapsed()
+                )));
+            }
+        }
+    }
+
+    /// The next reply `wanted` accepts within the timeout, discarding every
+    /// other message and any garbled bytes on the way (getting in step).
+    fn read_reply_skipping(&mut self, wanted: impl Fn(&Reply) -> bool) -> Result<Reply, AptError> {
+        let deadline = Instant::now() + self.timeout;
+        loop {
+            match self.io.read_frame() {
+                Ok(frame) => match Reply::from_frame(&frame) {
+                    Ok(reply) if wanted(&reply) => return Ok(reply),
+                    Err(e @ AptError::Device { .. }) => return Err(e),
+                    _ => {}
+                },
+                Err(AptError::Io(e))
+                    if !matches!(e.kind(), ErrorKind::TimedOut | ErrorKind::WouldBlock) =>
+                {
+                    return Err(AptError::Io(e));
+                }
+                Err(_) => {}
+            }
+            if Instant::now() >= deadline {
+                return Err(AptError::Timeout(self.timeout));
+            }
+        }
     }
 
     fn read_reply(&mut self, wanted: impl Fn(&Reply) -> bool) -> Result<Reply, AptError> {
@@ -439,17 +570,36 @@ mod tests {
         }
     }
 
-    /// A port that answers with `replies` whatever is written to it.
-    struct Scripted(VecDeque<u8>);
+    /// A port that answers each request written to it with the next of
+    /// its scripted replies.
+    struct Scripted {
+        replies: VecDeque<Reply>,
+        inbox: VecDeque<u8>,
+    }
 
     impl Scripted {
         fn new(replies: &[Reply]) -> Self {
-            Self(replies.iter().flat_map(|r| r.to_frame().encode()).collect())
+            Self {
+                replies: replies.iter().cloned().collect(),
+                inbox: VecDeque::new(),
+            }
         }
     }
 
     impl Write for Scripted {
         fn write(&mut self, bytes: &[u8]) -> std::io::Result<usize> {
+            let mut reader = FrameReader::new(bytes);
+            while let Ok(frame) = reader.read_frame() {
+                let request = matches!(
+                    Command::from_frame(&frame),
+                    Ok(Command::RequestInfo
+                        | Command::RequestEnabled(_)
+                        | Command::RequestPosition(_))
+                );
+                if let Some(reply) = request.then(|| self.replies.pop_front()).flatten() {
+                    self.inbox.extend(reply.to_frame().encode());
+                }
+            }
             Ok(bytes.len())
         }
 
@@ -460,11 +610,11 @@ mod tests {
 
     impl Read for Scripted {
         fn read(&mut self, buf: &mut [u8]) -> std::io::Result<usize> {
-            if self.0.is_empty() {
+            if self.inbox.is_empty() {
                 return Err(ErrorKind::TimedOut.into());
             }
-            let n = buf.len().min(self.0.len());
-            for (slot, byte) in buf.iter_mut().zip(self.0.drain(..n)) {
+            let n = buf.len().min(self.inbox.len());
+            for (slot, byte) in buf.iter_mut().zip(self.inbox.drain(..n)) {
                 *slot = byte;
             }
             Ok(n)
@@ -478,6 +628,8 @@ mod tests {
             firmware: "1.0.0".into(),
             hardware_version: 1,
             channels: 1,
+            kind: 44,
+            notes: String::new(),
         })
     }
 

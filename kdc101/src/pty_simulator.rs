@@ -7,6 +7,7 @@ use crate::apt::{AptError, Frame, FrameReader};
 use crate::simulator::{ActuatorModel, SimulatedController};
 use nix::fcntl::{FcntlArg, OFlag, fcntl};
 use nix::pty::openpty;
+use nix::sys::termios::{SetArg, cfmakeraw, tcgetattr, tcsetattr};
 use std::fs::File;
 use std::io::{ErrorKind, Write};
 use std::os::fd::OwnedFd;
@@ -27,6 +28,8 @@ pub enum Fault {
     Unexpected,
     /// It reports a fault instead of replying: a header-only HW_RESPONSE.
     Failing,
+    /// Its replies leave this much later than usual.
+    Late(Duration),
 }
 
 /// State shared between the server thread and its owner.
@@ -34,6 +37,8 @@ pub enum Fault {
 struct ServerState {
     controller: SimulatedController,
     fault: Option<Fault>,
+    /// Bytes to send as they are, ahead of any reply.
+    injected: Vec<u8>,
 }
 
 /// A simulated KDC101 on a pseudo-terminal; stopped when dropped.
@@ -52,6 +57,11 @@ impl PtySimulator {
     /// `serial` on it; replies leave `latency` after their command.
     pub fn spawn(serial: u32, model: ActuatorModel, latency: Duration) -> std::io::Result<Self> {
         let pty = openpty(None, None).map_err(std::io::Error::from)?;
+        // A serial line, not a terminal: no echo, no line editing, from the
+        // start (bytes sent before the driver opens the port included).
+        let mut termios = tcgetattr(&pty.slave).map_err(std::io::Error::from)?;
+        cfmakeraw(&mut termios);
+        tcsetattr(&pty.slave, SetArg::TCSANOW, &termios).map_err(std::io::Error::from)?;
         let path = nix::unistd::ttyname(&pty.slave).map_err(std::io::Error::from)?;
         let flags = fcntl(&pty.master, FcntlArg::F_GETFL).map_err(std::io::Error::from)?;
         fcntl(
@@ -62,6 +72,7 @@ impl PtySimulator {
         let shared = Arc::new(Mutex::new(ServerState {
             controller: SimulatedController::new(serial, model),
             fault: None,
+            injected: Vec::new(),
         }));
         let stop = Arc::new(AtomicBool::new(false));
         let master = File::from(pty.master);
@@ -93,6 +104,11 @@ impl PtySimulator {
     /// Makes the controller misbehave from now on (or behave again).
     pub fn set_fault(&self, fault: Option<Fault>) {
         lock(&self.shared).fault = fault;
+    }
+
+    /// Sends `bytes` down the line as they are (noise, stale bytes).
+    pub fn inject(&self, bytes: &[u8]) {
+        lock(&self.shared).injected.extend_from_slice(bytes);
     }
 }
 
@@ -136,7 +152,11 @@ fn serve(master: File, shared: &Mutex<ServerState>, stop: &AtomicBool, latency: 
                     let replies = state.controller.handle(&frame).unwrap_or_default();
                     for reply in replies {
                         if let Some(bytes) = faulty(state.fault, &reply) {
-                            due.push((Instant::now() + latency, bytes));
+                            queue(
+                                &mut due,
+                                Instant::now() + delay(state.fault, latency),
+                                bytes,
+                            );
                         }
                     }
                 }
@@ -155,8 +175,12 @@ fn serve(master: File, shared: &Mutex<ServerState>, stop: &AtomicBool, latency: 
             let events = state.controller.advance((now - last).as_secs_f64());
             for event in events {
                 if let Some(bytes) = faulty(state.fault, &event) {
-                    due.push((now + latency, bytes));
+                    queue(&mut due, now + delay(state.fault, latency), bytes);
                 }
+            }
+            if !state.injected.is_empty() {
+                let bytes = std::mem::take(&mut state.injected);
+                due.insert(0, (now, bytes));
             }
         }
         last = now;
@@ -172,11 +196,26 @@ fn serve(master: File, shared: &Mutex<ServerState>, stop: &AtomicBool, latency: 
     }
 }
 
+/// Queues `bytes` to leave at `at`, or after the message queued before
+/// them: a controller never reorders its messages.
+fn queue(due: &mut Vec<(Instant, Vec<u8>)>, at: Instant, bytes: Vec<u8>) {
+    let at = due.last().map_or(at, |(last, _)| at.max(*last));
+    due.push((at, bytes));
+}
+
+/// How long after its cause a message leaves under `fault`.
+fn delay(fault: Option<Fault>, latency: Duration) -> Duration {
+    match fault {
+        Some(Fault::Late(extra)) => latency + extra,
+        _ => latency,
+    }
+}
+
 /// The bytes a frame goes out as under `fault`, if any.
 fn faulty(fault: Option<Fault>, frame: &Frame) -> Option<Vec<u8>> {
     let bytes = frame.encode();
     match fault {
-        None => Some(bytes),
+        None | Some(Fault::Late(_)) => Some(bytes),
         Some(Fault::Silent) => None,
         Some(Fault::Truncated) => Some(bytes[..bytes.len() / 2].to_vec()),
         // MOT_MOVE_HOMED: never asked for by the driver.

@@ -1,12 +1,16 @@
-//! A simulated KDC101 driving a Z8 actuator: it answers the commands the
-//! driver sends as the real controller does and moves a simulated
-//! carriage with finite acceleration, hardware limit switches and backlash.
-//! [`crate::PtySimulator`] serves it over a pseudo-terminal, so the real
-//! driver runs unchanged against it.
+//! A simulated KDC101 driving a Z8 actuator: it answers every message a
+//! KDC101 user's software sends as the APT protocol documents it —
+//! identification, channel enable, velocity, jog, homing and move
+//! parameters, velocity, jog, relative, absolute and homing moves, stops,
+//! position and encoder counters, status requests and periodic status
+//! updates — and moves a simulated carriage with finite acceleration,
+//! hardware limit switches and backlash. [`crate::PtySimulator`] serves it
+//! over a pseudo-terminal, so the real driver, or any other APT client,
+//! runs unchanged against it.
 
 use crate::apt::{
-    AptError, Channel, Command, DcStatus, Direction, Frame, HardwareInfo, Reply, StopMode,
-    VelocityParams, Z8Units,
+    AptError, Channel, Command, DcStatus, Direction, Frame, HardwareInfo, HomeParams, JogParams,
+    Param, Reply, StopMode, VelocityParams, Z8Units,
 };
 
 /// Status bits of the KDC101.
@@ -14,7 +18,16 @@ const FORWARD_LIMIT: u32 = 0x01;
 const REVERSE_LIMIT: u32 = 0x02;
 const MOVING_FORWARD: u32 = 0x10;
 const MOVING_REVERSE: u32 = 0x20;
+const JOGGING_FORWARD: u32 = 0x40;
+const JOGGING_REVERSE: u32 = 0x80;
+const MOTOR_CONNECTED: u32 = 0x100;
+const HOMING: u32 = 0x200;
+const HOMED: u32 = 0x400;
 const ENABLED: u32 = 0x8000_0000;
+/// The interval of status updates once started (HW_START_UPDATEMSGS), s.
+const UPDATE_INTERVAL_S: f64 = 0.1;
+/// The hardware type reported (the protocol's DC servo controller).
+const HARDWARE_TYPE: u16 = 44;
 
 /// The simulated actuator's build.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -41,7 +54,20 @@ impl Default for ActuatorModel {
 #[derive(Clone, Copy, Debug, PartialEq)]
 enum Motion {
     Idle,
-    Velocity(Direction),
+    /// Until stopped: a velocity move, or a continuous jog.
+    Velocity {
+        direction: Direction,
+        jog: bool,
+    },
+    /// To a position counter value, mm (relative, absolute and step-jog
+    /// moves, and the last leg of homing).
+    To {
+        target_mm: f64,
+        homing: bool,
+        jog: bool,
+    },
+    /// Toward the home limit switch.
+    Homing,
     Stopping,
 }
 
@@ -53,7 +79,16 @@ pub struct SimulatedController {
     serial: u32,
     enabled: bool,
     updates: bool,
+    since_update_s: f64,
     params: VelocityParams,
+    jog: JogParams,
+    home: HomeParams,
+    backlash: i32,
+    relative_distance: i32,
+    absolute_position: i32,
+    homed: bool,
+    /// The motor position the position counter calls zero, mm.
+    origin_mm: f64,
     motor_mm: f64,
     carriage_mm: f64,
     velocity_mm_s: f64,
@@ -61,7 +96,8 @@ pub struct SimulatedController {
 }
 
 impl SimulatedController {
-    /// A controller with serial number `serial`, disabled, at rest.
+    /// A controller with serial number `serial`, disabled, at rest, with
+    /// its counter reading the motor's distance from the reverse limit.
     pub fn new(serial: u32, model: ActuatorModel) -> Self {
         let units = Z8Units::default();
         Self {
@@ -70,11 +106,31 @@ impl SimulatedController {
             serial,
             enabled: false,
             updates: false,
+            since_update_s: 0.0,
             params: VelocityParams {
                 min_velocity: 0,
                 acceleration: units.acceleration(1.5),
                 max_velocity: units.velocity(2.3),
             },
+            jog: JogParams {
+                mode: 2,
+                step: units.counts(0.1),
+                min_velocity: 0,
+                acceleration: units.acceleration(1.5),
+                max_velocity: units.velocity(2.3),
+                stop_mode: 2,
+            },
+            home: HomeParams {
+                direction: 2,
+                limit_switch: 1,
+                velocity: units.velocity(1.0),
+                offset: 0,
+            },
+            backlash: 0,
+            relative_distance: 0,
+            absolute_position: 0,
+            homed: false,
+            origin_mm: 0.0,
             motor_mm: model.start_mm,
             carriage_mm: model.start_mm,
             velocity_mm_s: 0.0,
@@ -98,6 +154,11 @@ impl SimulatedController {
         self.updates
     }
 
+    /// Whether the stage has been homed since power-up.
+    pub fn homed(&self) -> bool {
+        self.homed
+    }
+
     /// Answers one frame from the host: the replies to send back.
     pub fn handle(&mut self, frame: &Frame) -> Result<Vec<Frame>, AptError> {
         let command = Command::from_frame(frame)?;
@@ -109,16 +170,19 @@ impl SimulatedController {
                 firmware: "3.0.10".into(),
                 hardware_version: 1,
                 channels: 1,
+                kind: HARDWARE_TYPE,
+                notes: "Brushed DC Servo Controller (simulated)".into(),
             })),
             Command::StartUpdates => {
                 self.updates = true;
+                self.since_update_s = 0.0;
                 Vec::new()
             }
-            Command::StopUpdates => {
+            Command::StopUpdates | Command::Disconnect => {
                 self.updates = false;
                 Vec::new()
             }
-            Command::AckStatus => Vec::new(),
+            Command::AckStatus | Command::Identify => Vec::new(),
             Command::Enable(_, on) => {
                 self.enabled = on;
                 if !on {
@@ -132,10 +196,89 @@ impl SimulatedController {
                 Vec::new()
             }
             Command::RequestVelocity(channel) => reply(Reply::Velocity(channel, self.params)),
-            Command::MoveVelocity(_, direction) => {
-                if self.enabled {
-                    self.motion = Motion::Velocity(direction);
+            Command::SetJog(_, jog) => {
+                self.jog = jog;
+                Vec::new()
+            }
+            Command::RequestJog(channel) => reply(Reply::Jog(channel, self.jog)),
+            Command::SetHome(_, home) => {
+                self.home = home;
+                Vec::new()
+            }
+            Command::RequestHome(channel) => reply(Reply::Home(channel, self.home)),
+            Command::SetParam(_, param, value) => {
+                match param {
+                    Param::Backlash => self.backlash = value,
+                    Param::RelativeDistance => self.relative_distance = value,
+                    Param::AbsolutePosition => self.absolute_position = value,
+                    // The encoder and the position counter are one on a
+                    // DC servo.
+                    Param::EncoderCount => self.set_counter(value),
                 }
+                Vec::new()
+            }
+            Command::RequestParam(channel, param) => {
+                let value = match param {
+                    Param::Backlash => self.backlash,
+                    Param::RelativeDistance => self.relative_distance,
+                    Param::AbsolutePosition => self.absolute_position,
+                    Param::EncoderCount => self.counter(),
+                };
+                reply(Reply::Param(channel, param, value))
+            }
+            Command::SetPosition(_, value) => {
+                self.set_counter(value);
+                Vec::new()
+            }
+            Command::MoveVelocity(_, direction) => {
+                self.start(Motion::Velocity {
+                    direction,
+                    jog: false,
+                });
+                Vec::new()
+            }
+            Command::Jog(_, direction) => {
+                let motion = if self.jog.mode == 1 {
+                    Motion::Velocity {
+                        direction,
+                        jog: true,
+                    }
+                } else {
+                    let step = self.units.mm(self.jog.step.abs());
+                    let step = match direction {
+                        Direction::Forward => step,
+                        Direction::Reverse => -step,
+                    };
+                    Motion::To {
+                        target_mm: self.counter_mm() + step,
+                        homing: false,
+                        jog: true,
+                    }
+                };
+                self.start(motion);
+                Vec::new()
+            }
+            Command::MoveRelative(_, distance) => {
+                let distance = distance.unwrap_or(self.relative_distance);
+                self.start(Motion::To {
+                    target_mm: self.counter_mm() + self.units.mm(distance),
+                    homing: false,
+                    jog: false,
+                });
+                Vec::new()
+            }
+            Command::MoveAbsolute(_, position) => {
+                let position = position.unwrap_or(self.absolute_position);
+                self.start(Motion::To {
+                    target_mm: self.units.mm(position),
+                    homing: false,
+                    jog: false,
+                });
+                Vec::new()
+            }
+            Command::Home(_) => {
+                self.homed = false;
+                self.start(Motion::Homing);
                 Vec::new()
             }
             Command::Stop(_, StopMode::Immediate) => {
@@ -150,34 +293,104 @@ impl SimulatedController {
                     Vec::new()
                 }
             }
-            Command::RequestPosition(channel) => {
-                reply(Reply::Position(channel, self.units.counts(self.motor_mm)))
-            }
+            Command::RequestPosition(channel) => reply(Reply::Position(channel, self.counter())),
             Command::RequestStatus(_) => reply(Reply::Status(self.status())),
+            Command::RequestStatusBits(channel) => {
+                reply(Reply::StatusBits(channel, self.status().bits))
+            }
         })
     }
 
+    /// Starts `motion` if the channel is enabled (a disabled one ignores
+    /// moves).
+    fn start(&mut self, motion: Motion) {
+        if self.enabled {
+            self.motion = motion;
+        }
+    }
+
+    /// The position counter, mm.
+    fn counter_mm(&self) -> f64 {
+        self.motor_mm - self.origin_mm
+    }
+
+    fn counter(&self) -> i32 {
+        self.units.counts(self.counter_mm())
+    }
+
+    fn set_counter(&mut self, value: i32) {
+        self.origin_mm = self.motor_mm - self.units.mm(value);
+    }
+
     /// Moves the simulation on by `dt` seconds; returns what the controller
-    /// sends by itself (MOVE_STOPPED when a stop completes or a limit switch
-    /// trips).
+    /// sends by itself: MOVE_STOPPED when a stop completes or a limit
+    /// switch trips, MOVE_COMPLETED when a move arrives, MOVE_HOMED, and
+    /// status updates every 100 ms while they are on.
     pub fn advance(&mut self, dt: f64) -> Vec<Frame> {
-        let accel = f64::from(self.params.acceleration.max(1))
-            / f64::from(self.units.acceleration(1.0).max(1));
-        let top = self.units.mm_per_s(self.params.max_velocity).abs();
+        let mut events = Vec::new();
+        let (top, accel) = self.profile();
+        let step = accel * dt;
         let wanted = match self.motion {
-            Motion::Velocity(Direction::Forward) => top,
-            Motion::Velocity(Direction::Reverse) => -top,
+            Motion::Velocity { direction, .. } => match direction {
+                Direction::Forward => top,
+                Direction::Reverse => -top,
+            },
+            Motion::Homing => match self.home.direction {
+                1 => top,
+                _ => -top,
+            },
+            Motion::To { target_mm, .. } => {
+                let remaining = target_mm - self.counter_mm();
+                // The fastest speed from which the target can still be
+                // reached by braking.
+                let brake = (2.0 * accel * remaining.abs()).sqrt();
+                remaining.signum() * top.min(brake)
+            }
             Motion::Stopping | Motion::Idle => 0.0,
         };
-        let step = accel * dt;
         self.velocity_mm_s += (wanted - self.velocity_mm_s).clamp(-step, step);
+        let before = self.counter_mm();
         self.motor_mm += self.velocity_mm_s * dt;
-        let mut events = Vec::new();
+        if let Motion::To {
+            target_mm, homing, ..
+        } = self.motion
+        {
+            let (a, b) = (before - target_mm, self.counter_mm() - target_mm);
+            if a == 0.0 || b == 0.0 || a.signum() != b.signum() || b.abs() < 1e-7 {
+                self.motor_mm = target_mm + self.origin_mm;
+                self.halt();
+                if homing {
+                    self.origin_mm = self.motor_mm;
+                    self.homed = true;
+                    events.push(Reply::Homed(Channel(1)).to_frame());
+                } else {
+                    events.push(Reply::MoveCompleted(self.status()).to_frame());
+                }
+            }
+        }
         if self.motor_mm <= 0.0 || self.motor_mm >= self.model.travel_mm {
             self.motor_mm = self.motor_mm.clamp(0.0, self.model.travel_mm);
-            if self.motion != Motion::Idle {
-                self.halt();
-                events.push(Reply::MoveStopped(self.status()).to_frame());
+            match self.motion {
+                // The home switch: back off by the offset, then zero there.
+                Motion::Homing => {
+                    self.velocity_mm_s = 0.0;
+                    let offset = self.units.mm(self.home.offset.abs());
+                    let away = if self.motor_mm <= 0.0 {
+                        offset
+                    } else {
+                        -offset
+                    };
+                    self.motion = Motion::To {
+                        target_mm: self.counter_mm() + away,
+                        homing: true,
+                        jog: false,
+                    };
+                }
+                Motion::Idle | Motion::To { homing: true, .. } => {}
+                _ => {
+                    self.halt();
+                    events.push(Reply::MoveStopped(self.status()).to_frame());
+                }
             }
         }
         let play = self.model.backlash_mm;
@@ -186,7 +399,32 @@ impl SimulatedController {
             self.motion = Motion::Idle;
             events.push(Reply::MoveStopped(self.status()).to_frame());
         }
+        if self.updates {
+            self.since_update_s += dt;
+            if self.since_update_s >= UPDATE_INTERVAL_S {
+                self.since_update_s %= UPDATE_INTERVAL_S;
+                events.push(Reply::Status(self.status()).to_frame());
+            }
+        }
         events
+    }
+
+    /// The top speed (mm/s) and acceleration (mm/s²) of the present motion.
+    fn profile(&self) -> (f64, f64) {
+        let per_accel = f64::from(self.units.acceleration(1.0).max(1));
+        let (velocity, acceleration) = match self.motion {
+            Motion::Velocity { jog: true, .. } | Motion::To { jog: true, .. } => {
+                (self.jog.max_velocity, self.jog.acceleration)
+            }
+            Motion::Homing | Motion::To { homing: true, .. } => {
+                (self.home.velocity, self.params.acceleration)
+            }
+            _ => (self.params.max_velocity, self.params.acceleration),
+        };
+        (
+            self.units.mm_per_s(velocity).abs(),
+            f64::from(acceleration.max(1)) / per_accel,
+        )
     }
 
     fn halt(&mut self) {
@@ -196,9 +434,12 @@ impl SimulatedController {
 
     /// The status the controller reports now.
     pub fn status(&self) -> DcStatus {
-        let mut bits = 0;
+        let mut bits = MOTOR_CONNECTED;
         if self.enabled {
             bits |= ENABLED;
+        }
+        if self.homed {
+            bits |= HOMED;
         }
         if self.motor_mm >= self.model.travel_mm {
             bits |= FORWARD_LIMIT;
@@ -206,19 +447,37 @@ impl SimulatedController {
         if self.motor_mm <= 0.0 {
             bits |= REVERSE_LIMIT;
         }
+        let jogging = matches!(
+            self.motion,
+            Motion::Velocity { jog: true, .. } | Motion::To { jog: true, .. }
+        );
+        if matches!(
+            self.motion,
+            Motion::Homing | Motion::To { homing: true, .. }
+        ) {
+            bits |= HOMING;
+        }
         if self.velocity_mm_s > 0.0 {
-            bits |= MOVING_FORWARD;
+            bits |= if jogging {
+                JOGGING_FORWARD
+            } else {
+                MOVING_FORWARD
+            };
         } else if self.velocity_mm_s < 0.0 {
-            bits |= MOVING_REVERSE;
+            bits |= if jogging {
+                JOGGING_REVERSE
+            } else {
+                MOVING_REVERSE
+            };
         }
         DcStatus {
             channel: Channel(1),
-            position: self.units.counts(self.motor_mm),
-            // The status word's velocity: encoder counts per second / 1,000
-            // (informational; the driver does not read it).
-            velocity: (self.velocity_mm_s.abs() * self.units.counts_per_mm / 1000.0)
+            position: self.counter(),
+            // The status word's signed velocity: encoder counts per second
+            // / 1,000 (informational; the driver does not read it).
+            velocity: (self.velocity_mm_s * self.units.counts_per_mm / 1000.0)
                 .round()
-                .min(f64::from(u16::MAX)) as u16,
+                .clamp(f64::from(i16::MIN), f64::from(i16::MAX)) as i16,
             bits,
         }
     }

@@ -97,7 +97,7 @@ fn a_silent_truncated_unexpected_or_failing_reply_is_an_error_and_the_motor_stop
         let error = stage.position_mm().unwrap_err();
         let waited = started.elapsed();
         match fault {
-            Fault::Silent | Fault::Truncated => {
+            Fault::Silent | Fault::Truncated | Fault::Late(_) => {
                 assert!(matches!(error, AptError::Timeout(_)), "{fault:?}: {error}");
                 // The 300 ms reply timeout, not an endless wait; the slack
                 // is for a loaded 2-core machine.
@@ -216,4 +216,67 @@ fn the_stopper_halts_both_stages_at_once_whatever_their_drivers_do() {
             "{estimate:?} vs {truth:?}"
         );
     }
+}
+
+/// The twin's position counter now, mm.
+fn counter_mm(twin: &PtySimulator) -> f64 {
+    Z8Units::default().mm(twin.controller().status().position)
+}
+
+#[test]
+fn after_a_late_reply_or_half_a_frame_every_position_read_is_fresh() {
+    for fault in [Fault::Late(Duration::from_millis(450)), Fault::Truncated] {
+        let twin = twin();
+        let mut stage = connect(&twin);
+        twin.set_fault(Some(fault));
+        let error = stage.position_mm().unwrap_err();
+        assert!(matches!(error, AptError::Timeout(_)), "{fault:?}: {error}");
+        twin.set_fault(None);
+        // Moving, so that every reply carries another position: one that
+        // answers an earlier request is at least 0.1 mm off.
+        assert_eq!(stage.set_velocity(1.0).unwrap(), Commanded::Moving(1.0));
+        for _ in 0..5 {
+            std::thread::sleep(Duration::from_millis(150));
+            let read = stage.position_mm().unwrap();
+            let truth = counter_mm(&twin);
+            assert!(
+                (read - truth).abs() < 0.02,
+                "{fault:?}: read {read} mm, the counter is at {truth} mm"
+            );
+        }
+    }
+}
+
+#[test]
+fn stale_bytes_in_the_port_at_open_are_purged() {
+    let twin = twin();
+    twin.inject(&[0x12, 0x34, 0x00, 0x00, 0x01]);
+    std::thread::sleep(Duration::from_millis(20));
+    let mut stage = connect(&twin);
+    let position = stage.position_mm().unwrap();
+    assert!((position - 6.0).abs() < 1e-4, "{position}");
+}
+
+#[test]
+fn noise_between_replies_never_reaches_the_soft_limit_check() {
+    let twin = twin();
+    let mut stage = connect(&twin);
+    stage.set_velocity(0.5).unwrap();
+    for _ in 0..20 {
+        // Half a position reply's worth of noise, then the real replies.
+        twin.inject(&[0x12, 0x04, 0x06, 0x00, 0x81, 0x50, 0xff]);
+        match stage.set_velocity(0.5) {
+            Ok(_)
+            | Err(AptError::Timeout(_) | AptError::Unexpected(_) | AptError::Length { .. }) => {}
+            Err(other) => panic!("{other}"),
+        }
+        let read = stage.position_mm();
+        if let Ok(read) = read {
+            assert!((read - counter_mm(&twin)).abs() < 0.02, "read {read} mm");
+        }
+    }
+    // Quiet again: in step, reading the truth.
+    std::thread::sleep(Duration::from_millis(100));
+    let read = stage.position_mm().unwrap();
+    assert!((read - counter_mm(&twin)).abs() < 0.02);
 }

@@ -75,7 +75,7 @@ pub fn serve(file: LearnerFile, start: Start, security: &Security) -> anyhow::Re
         snapshots.pin(needed);
     }
     let device = config.device.device()?;
-    let trainer = Trainer::new(
+    let mut trainer = Trainer::new(
         &file,
         shared.clone(),
         checkpoints,
@@ -83,6 +83,7 @@ pub fn serve(file: LearnerFile, start: Start, security: &Security) -> anyhow::Re
         &device,
     )?;
     drop(resumed);
+    trainer.publish_first()?;
 
     let runtime = tokio::runtime::Builder::new_multi_thread()
         .enable_all()

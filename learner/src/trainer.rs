@@ -116,10 +116,9 @@ impl Trainer {
         })
     }
 
-    /// Trains until the shared state says stop, then writes a final
-    /// checkpoint. An error (a full disk) ends training; a diverged update
-    /// does not ([`crate::divergence`]).
-    pub fn run(mut self) -> anyhow::Result<()> {
+    /// Publishes the untrained policy when no snapshot exists yet, so that
+    /// a client asking once the learner listens finds one.
+    pub fn publish_first(&mut self) -> anyhow::Result<()> {
         let has_snapshot = self
             .shared
             .snapshots()
@@ -127,6 +126,13 @@ impl Trainer {
         if !has_snapshot {
             self.publish()?;
         }
+        Ok(())
+    }
+
+    /// Trains until the shared state says stop, then writes a final
+    /// checkpoint. An error (a full disk) ends training; a diverged update
+    /// does not ([`crate::divergence`]).
+    pub fn run(mut self) -> anyhow::Result<()> {
         let result = self.train();
         let last = self.checkpoint();
         result.and(last.map(|_| ()))

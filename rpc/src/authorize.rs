@@ -4,11 +4,11 @@
 //! name of the token that made it. Tokens never reach a log.
 
 use crate::access::{Access, access};
+use crate::server::{SharedTokens, current};
 use crate::tokens::{Role, TokenEntry, Tokens};
 use http::{Request, Response};
 use std::future::Future;
 use std::pin::Pin;
-use std::sync::Arc;
 use std::task::{Context, Poll};
 use tonic::Status;
 use tonic::body::Body;
@@ -26,12 +26,12 @@ pub struct Caller {
 /// Adds [`Authorize`] to a server.
 #[derive(Clone)]
 pub struct AuthLayer {
-    tokens: Arc<Tokens>,
+    tokens: SharedTokens,
 }
 
 impl AuthLayer {
-    /// Accepts the tokens in `tokens`.
-    pub fn new(tokens: Arc<Tokens>) -> Self {
+    /// Accepts the tokens `tokens` holds at each call.
+    pub(crate) fn new(tokens: SharedTokens) -> Self {
         Self { tokens }
     }
 }
@@ -77,7 +77,7 @@ impl<S> Layer<S> for AuthLayer {
 #[derive(Clone)]
 pub struct Authorize<S> {
     inner: S,
-    tokens: Arc<Tokens>,
+    tokens: SharedTokens,
 }
 
 impl<S> Authorize<S> {
@@ -93,7 +93,8 @@ impl<S> Authorize<S> {
             Err(status)
         };
         let header = request.headers().get(http::header::AUTHORIZATION);
-        let entry = match presented(&self.tokens, header) {
+        let tokens = current(&self.tokens);
+        let entry = match presented(&tokens, header) {
             Ok(entry) => entry,
             Err(Refusal::Missing) => {
                 return refuse(Status::unauthenticated(format!(

@@ -11,6 +11,7 @@ pub mod access;
 mod authorize;
 pub mod certs;
 mod client;
+mod guarded_listener;
 mod loopback_credentials;
 mod metrics_endpoint;
 mod private_file;
@@ -19,8 +20,9 @@ mod security;
 mod server;
 mod tokens;
 
-pub use authorize::{AuthLayer, Caller};
+pub use authorize::Caller;
 pub use client::{AuthChannel, Bearer, ClientSecurity, ConnectError, hint, learner_status};
+pub use guarded_listener::{ListenerLimits, raise_open_files_limit};
 pub use loopback_credentials::LoopbackCredentials;
 pub use private_file::{append_private, create_private};
 pub use prometheus::{Histogram, MetricSample, Prometheus, latency_buckets};

@@ -1,11 +1,13 @@
 //! `GET /metrics` on a listener of its own, secured as the gRPC listener
 //! is: TLS with the same certificate (and client certificates when
 //! required) unless plaintext, and a bearer token of any role (every role
-//! may read). Prometheus scrapes it with `authorization` and `tls_config`.
+//! may read), with the same connection limits. Prometheus scrapes it with
+//! `authorization` and `tls_config`.
 
 use crate::authorize::{Refusal, presented};
+use crate::guarded_listener::{self, Connection};
 use crate::prometheus::Prometheus;
-use crate::server::ServerSecurity;
+use crate::server::{ServerSecurity, SharedTokens, current};
 use crate::tokens::Tokens;
 use http::{Method, Request, Response, StatusCode, header};
 use http_body_util::Full;
@@ -17,9 +19,8 @@ use std::convert::Infallible;
 use std::future::Future;
 use std::sync::Arc;
 use std::time::Duration;
-use tokio::io::{AsyncRead, AsyncWrite};
 use tokio::net::TcpListener;
-use tokio_rustls::TlsAcceptor;
+use tokio_stream::StreamExt;
 
 /// Longest a scrape connection may stay open.
 const CONNECTION_LIMIT: Duration = Duration::from_secs(30);
@@ -32,48 +33,37 @@ impl ServerSecurity {
         metrics: Arc<Prometheus>,
         shutdown: impl Future<Output = ()>,
     ) {
-        let acceptor = self.metrics_tls.clone().map(TlsAcceptor::from);
+        self.reload_on_sighup();
+        let mut incoming =
+            guarded_listener::incoming(listener, self.metrics_tls.clone(), self.limits, "metrics");
         tokio::pin!(shutdown);
         loop {
-            let stream = tokio::select! {
+            let connection = tokio::select! {
                 () = &mut shutdown => return,
-                accepted = listener.accept() => match accepted {
-                    Ok((stream, _)) => stream,
-                    Err(e) => {
-                        tracing::debug!(error = %e, "metrics accept failed");
-                        continue;
-                    }
+                accepted = incoming.next() => match accepted {
+                    Some(Ok(connection)) => connection,
+                    Some(Err(_)) => continue,
+                    None => return,
                 },
             };
             let tokens = self.tokens.clone();
             let metrics = metrics.clone();
-            let acceptor = acceptor.clone();
-            tokio::spawn(async move {
-                match acceptor {
-                    Some(acceptor) => match acceptor.accept(stream).await {
-                        Ok(tls) => connection(tls, tokens, metrics).await,
-                        Err(e) => tracing::debug!(error = %e, "metrics TLS handshake failed"),
-                    },
-                    None => connection(stream, tokens, metrics).await,
-                }
-            });
+            tokio::spawn(serve_connection(connection, tokens, metrics));
         }
     }
 }
 
 /// Serves one connection's requests.
-async fn connection<Io>(io: Io, tokens: Arc<Tokens>, metrics: Arc<Prometheus>)
-where
-    Io: AsyncRead + AsyncWrite + Unpin + Send + 'static,
-{
+async fn serve_connection(connection: Connection, tokens: SharedTokens, metrics: Arc<Prometheus>) {
+    let peer = connection.peer();
     let service = service_fn(move |request: Request<Incoming>| {
-        let response = respond(&tokens, &metrics, &request);
+        let response = respond(&current(&tokens), &metrics, &request);
         async move { Ok::<_, Infallible>(response) }
     });
-    let served = http1::Builder::new().serve_connection(TokioIo::new(io), service);
+    let served = http1::Builder::new().serve_connection(TokioIo::new(connection), service);
     match tokio::time::timeout(CONNECTION_LIMIT, served).await {
-        Ok(Err(e)) => tracing::debug!(error = %e, "metrics connection failed"),
-        Err(_) => tracing::debug!("metrics connection closed after {CONNECTION_LIMIT:?}"),
+        Ok(Err(e)) => tracing::debug!(%peer, error = %e, "metrics connection failed"),
+        Err(_) => tracing::debug!(%peer, "metrics connection closed after {CONNECTION_LIMIT:?}"),
         Ok(Ok(())) => {}
     }
 }

@@ -4,6 +4,7 @@
 //! relative to the file's directory, so a directory of credentials moves
 //! as one.
 
+use crate::guarded_listener::ListenerLimits;
 use crate::tokens::{Token, TokenError, Tokens};
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
@@ -34,6 +35,8 @@ pub struct SecurityFile {
     pub tokens: Option<PathBuf>,
     /// A client: the file holding its token (`TWEEZER_TOKEN` overrides).
     pub token_file: Option<PathBuf>,
+    /// A service: how its listeners treat connections.
+    pub listener: ListenerLimits,
 }
 
 /// A security file, read and its paths resolved.

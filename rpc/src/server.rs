@@ -3,83 +3,147 @@
 //! token checks, with a span per request.
 
 use crate::authorize::AuthLayer;
+use crate::guarded_listener::{
+    self, KEEPALIVE_INTERVAL, KEEPALIVE_TIMEOUT, ListenerLimits, SharedTls,
+};
 use crate::security::{Pem, Security, SecurityError};
 use crate::tokens::Tokens;
 use anyhow::Context;
 use http::Request;
 use std::convert::Infallible;
 use std::future::Future;
-use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, RwLock};
 use tokio::net::TcpListener;
-use tokio_stream::wrappers::TcpListenerStream;
 use tonic::body::Body;
 use tonic::server::NamedService;
 use tonic::service::Routes;
-use tonic::transport::server::{ServerTlsConfig, TcpConnectInfo, TlsConnectInfo};
-use tonic::transport::{Certificate, Identity, Server};
+use tonic::transport::Server;
+use tonic::transport::server::TcpConnectInfo;
 use tower::Service;
 
-/// How a service's listener is secured, loaded and checked before it binds.
+/// Tokens that a reload may replace; each call checks the current ones.
+pub(crate) type SharedTokens = Arc<RwLock<Arc<Tokens>>>;
+
+/// The current value behind a reloadable lock.
+pub(crate) fn current<T: ?Sized>(lock: &RwLock<Arc<T>>) -> Arc<T> {
+    lock.read()
+        .unwrap_or_else(|poisoned| poisoned.into_inner())
+        .clone()
+}
+
+/// How a service's listeners are secured and limited, loaded and checked
+/// before they bind. Clones share one state, which SIGHUP reloads: the
+/// tokens file, and the certificate, key and CA files the security file
+/// names (the security file itself, with `plaintext` and `[listener]`, is
+/// read once).
 #[derive(Clone)]
 pub struct ServerSecurity {
-    tls: Option<ServerTlsConfig>,
-    /// The same certificate for the metrics endpoint (HTTP/1.1).
-    pub(crate) metrics_tls: Option<Arc<rustls::ServerConfig>>,
-    pub(crate) tokens: Arc<Tokens>,
+    security: Arc<Security>,
+    /// TLS for gRPC (ALPN h2); `None` in plaintext.
+    grpc_tls: Option<SharedTls>,
+    /// The same certificate for the metrics endpoint (ALPN http/1.1).
+    pub(crate) metrics_tls: Option<SharedTls>,
+    pub(crate) tokens: SharedTokens,
+    pub(crate) limits: ListenerLimits,
+    watching_sighup: Arc<AtomicBool>,
 }
 
 impl ServerSecurity {
     /// The listener settings of `security`: its certificate and key (and CA,
-    /// for client certificates) parsed, its tokens read. Plaintext is
-    /// allowed only as the file says, and logged as a warning.
+    /// for client certificates) parsed, its tokens read, its `[listener]`
+    /// limits checked. Plaintext is allowed only as the file says, and
+    /// logged as a warning.
     pub fn load(security: &Security) -> Result<Self, SecurityError> {
+        let limits = security.file().listener;
+        limits.validate().map_err(|reason| SecurityError::Field {
+            file: security.source.clone(),
+            field: "listener",
+            reason,
+        })?;
+        // Two listeners (gRPC and metrics) at most per process.
+        guarded_listener::raise_open_files_limit(limits.descriptors(2));
         let tokens = Arc::new(security.tokens()?);
-        let pem = security.server_pem()?;
-        let metrics_tls = pem
-            .as_ref()
-            .map(|pem| metrics_tls(pem).map(Arc::new))
-            .transpose()
-            .map_err(|reason| SecurityError::Field {
-                file: security.source.clone(),
-                field: "cert",
-                reason,
-            })?;
-        let tls = match pem {
+        let (grpc_tls, metrics_tls) = match tls_configs(security)? {
             None => {
                 tracing::warn!(
                     security = %security.source,
                     "TLS is off (plaintext = true): tokens and data cross the network in the clear"
                 );
-                None
+                (None, None)
             }
-            Some(pem) => {
-                let (cert, key) = pem.identity.expect("a server's PEM has an identity");
-                let mut tls = ServerTlsConfig::new().identity(Identity::from_pem(cert, key));
-                if let Some(ca) = pem.ca {
-                    tls = tls.client_ca_root(Certificate::from_pem(ca));
-                }
-                // Parse now, so a bad file is reported before anything starts.
-                Server::builder()
-                    .tls_config(tls.clone())
-                    .map_err(|e| SecurityError::Field {
-                        file: security.source.clone(),
-                        field: "cert",
-                        reason: format!("the certificate or key does not load: {}", chain(&e)),
-                    })?;
-                Some(tls)
-            }
+            Some((grpc, metrics)) => (
+                Some(Arc::new(RwLock::new(grpc))),
+                Some(Arc::new(RwLock::new(metrics))),
+            ),
         };
         tracing::info!(
-            tls = tls.is_some(),
+            tls = grpc_tls.is_some(),
             client_certificates = security.file().require_client_cert,
             tokens = tokens.len(),
             "listener security"
         );
         Ok(Self {
-            tls,
+            security: Arc::new(security.clone()),
+            grpc_tls,
             metrics_tls,
-            tokens,
+            tokens: Arc::new(RwLock::new(tokens)),
+            limits,
+            watching_sighup: Arc::default(),
         })
+    }
+
+    /// Reads the tokens file and the certificates again and, if all of them
+    /// load, uses them for new calls and handshakes; otherwise keeps the
+    /// current ones and says why.
+    pub fn reload(&self) -> Result<(), SecurityError> {
+        let tokens = Arc::new(self.security.tokens()?);
+        let configs = tls_configs(&self.security)?;
+        *self
+            .tokens
+            .write()
+            .unwrap_or_else(|poisoned| poisoned.into_inner()) = tokens.clone();
+        if let (Some((grpc, metrics)), Some(grpc_tls), Some(metrics_tls)) =
+            (configs, &self.grpc_tls, &self.metrics_tls)
+        {
+            *grpc_tls
+                .write()
+                .unwrap_or_else(|poisoned| poisoned.into_inner()) = grpc;
+            *metrics_tls
+                .write()
+                .unwrap_or_else(|poisoned| poisoned.into_inner()) = metrics;
+        }
+        tracing::info!(tokens = tokens.len(), "reloaded tokens and certificates");
+        Ok(())
+    }
+
+    /// Reloads on every SIGHUP from now on (once per process however often
+    /// it is asked).
+    pub(crate) fn reload_on_sighup(&self) {
+        if self.watching_sighup.swap(true, Ordering::SeqCst) {
+            return;
+        }
+        use tokio::signal::unix::{SignalKind, signal};
+        let mut hangups = match signal(SignalKind::hangup()) {
+            Ok(hangups) => hangups,
+            Err(e) => {
+                tracing::warn!(error = %e, "cannot watch SIGHUP: tokens and certificates reload only on restart");
+                return;
+            }
+        };
+        let this = self.clone();
+        tokio::spawn(async move {
+            while hangups.recv().await.is_some() {
+                if let Err(e) = this.reload() {
+                    tracing::error!(error = %e, "SIGHUP: reload failed; the previous tokens and certificates stay in use");
+                }
+            }
+        });
+    }
+
+    /// The listener limits.
+    pub fn limits(&self) -> ListenerLimits {
+        self.limits
     }
 
     /// Serves `service`, health and reflection on `listener` until
@@ -100,6 +164,7 @@ impl ServerSecurity {
         S::Response: axum::response::IntoResponse,
         S::Future: Send + 'static,
     {
+        self.reload_on_sighup();
         let (health, health_service) = tonic_health::server::health_reporter();
         health
             .set_service_status(S::NAME, tonic_health::ServingStatus::Serving)
@@ -112,23 +177,44 @@ impl ServerSecurity {
         let routes = Routes::new(service)
             .add_service(health_service)
             .add_service(reflection);
-        let mut builder = Server::builder();
-        if let Some(tls) = self.tls {
-            builder = builder.tls_config(tls)?;
-        }
-        builder
+        let incoming =
+            guarded_listener::incoming(listener, self.grpc_tls.clone(), self.limits, "gRPC");
+        Server::builder()
+            .http2_keepalive_interval(Some(KEEPALIVE_INTERVAL))
+            .http2_keepalive_timeout(Some(KEEPALIVE_TIMEOUT))
             .trace_fn(request_span)
-            .layer(AuthLayer::new(self.tokens))
+            .layer(AuthLayer::new(self.tokens.clone()))
             .add_routes(routes)
-            .serve_with_incoming_shutdown(TcpListenerStream::new(listener), shutdown)
+            .serve_with_incoming_shutdown(incoming, shutdown)
             .await
             .context("gRPC server failed")
     }
 }
 
+/// TLS server configs for gRPC and for the metrics endpoint.
+type TlsPair = (Arc<rustls::ServerConfig>, Arc<rustls::ServerConfig>);
+
+/// The TLS server configs (gRPC, metrics) of `security`'s PEM files, or
+/// `None` in plaintext.
+fn tls_configs(security: &Security) -> Result<Option<TlsPair>, SecurityError> {
+    let Some(pem) = security.server_pem()? else {
+        return Ok(None);
+    };
+    let config = |alpn: &[u8]| {
+        server_tls(&pem, alpn)
+            .map(Arc::new)
+            .map_err(|reason| SecurityError::Field {
+                file: security.source.clone(),
+                field: "cert",
+                reason,
+            })
+    };
+    Ok(Some((config(b"h2")?, config(b"http/1.1")?)))
+}
+
 /// A rustls server config with `pem`'s certificate (and client CA), for
-/// HTTP/1.1.
-fn metrics_tls(pem: &Pem) -> Result<rustls::ServerConfig, String> {
+/// the application protocol `alpn`.
+fn server_tls(pem: &Pem, alpn: &[u8]) -> Result<rustls::ServerConfig, String> {
     use rustls::pki_types::pem::PemObject;
     use rustls::pki_types::{CertificateDer, PrivateKeyDer};
     let (cert, key) = pem
@@ -166,21 +252,16 @@ fn metrics_tls(pem: &Pem) -> Result<rustls::ServerConfig, String> {
     let mut config = builder
         .with_single_cert(certs, key)
         .map_err(|e| format!("the certificate and key do not load: {e}"))?;
-    config.alpn_protocols = vec![b"http/1.1".to_vec()];
+    config.alpn_protocols = vec![alpn.to_vec()];
     Ok(config)
 }
 
 /// The span every request runs in: its method and the peer's address.
 fn request_span(request: &http::Request<()>) -> tracing::Span {
-    let extensions = request.extensions();
-    let peer = extensions
-        .get::<TlsConnectInfo<TcpConnectInfo>>()
-        .and_then(|info| info.get_ref().remote_addr())
-        .or_else(|| {
-            extensions
-                .get::<TcpConnectInfo>()
-                .and_then(TcpConnectInfo::remote_addr)
-        });
+    let peer = request
+        .extensions()
+        .get::<TcpConnectInfo>()
+        .and_then(TcpConnectInfo::remote_addr);
     tracing::info_span!(
         "rpc",
         method = request.uri().path(),

@@ -293,6 +293,11 @@ impl Running {
         Self(Some(child))
     }
 
+    /// The process.
+    pub fn child(&self) -> &Child {
+        self.0.as_ref().expect("running until stopped")
+    }
+
     /// SIGTERM, then the exit status and what is left of standard output.
     pub fn stop(mut self) -> (ExitStatus, String) {
         stop(self.0.take().expect("not stopped yet"))

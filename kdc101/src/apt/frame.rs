@@ -199,6 +199,12 @@ impl<R: Read> FrameReader<R> {
         }))
     }
 
+    /// Drops the bytes of a frame not yet whole (after an error: the rest
+    /// of it may never come, and must not be read as the start of another).
+    pub fn discard(&mut self) {
+        self.pending.clear();
+    }
+
     /// The underlying stream.
     pub fn get_mut(&mut self) -> &mut R {
         &mut self.inner

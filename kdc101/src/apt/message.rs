@@ -1,10 +1,13 @@
-//! The messages the stage driver sends to a KDC101 and the replies it
-//! understands, with their ids and data layouts from Thorlabs' APT
-//! communications protocol.
+//! The messages a host sends to a KDC101 and the replies the controller
+//! sends back, with their ids and data layouts from Thorlabs' APT
+//! communications protocol: those the stage driver uses, and those a
+//! KDC101 user's other software sends (homing, absolute, relative and jog
+//! moves and their parameters), which the simulated controller answers.
 
 use super::frame::{AptError, Frame};
 use super::{DEVICE, HOST};
 
+const HW_DISCONNECT: u16 = 0x0002;
 const HW_REQ_INFO: u16 = 0x0005;
 const HW_GET_INFO: u16 = 0x0006;
 const HW_START_UPDATEMSGS: u16 = 0x0011;
@@ -14,15 +17,30 @@ const HW_RICHRESPONSE: u16 = 0x0081;
 const MOD_SET_CHANENABLESTATE: u16 = 0x0210;
 const MOD_REQ_CHANENABLESTATE: u16 = 0x0211;
 const MOD_GET_CHANENABLESTATE: u16 = 0x0212;
+const MOD_IDENTIFY: u16 = 0x0223;
+const MOT_SET_POSCOUNTER: u16 = 0x0410;
 const MOT_REQ_POSCOUNTER: u16 = 0x0411;
 const MOT_GET_POSCOUNTER: u16 = 0x0412;
 const MOT_SET_VELPARAMS: u16 = 0x0413;
 const MOT_REQ_VELPARAMS: u16 = 0x0414;
 const MOT_GET_VELPARAMS: u16 = 0x0415;
+const MOT_SET_JOGPARAMS: u16 = 0x0416;
+const MOT_REQ_JOGPARAMS: u16 = 0x0417;
+const MOT_GET_JOGPARAMS: u16 = 0x0418;
+const MOT_REQ_STATUSBITS: u16 = 0x0429;
+const MOT_GET_STATUSBITS: u16 = 0x042A;
+const MOT_SET_HOMEPARAMS: u16 = 0x0440;
+const MOT_REQ_HOMEPARAMS: u16 = 0x0441;
+const MOT_GET_HOMEPARAMS: u16 = 0x0442;
+const MOT_MOVE_HOME: u16 = 0x0443;
+const MOT_MOVE_HOMED: u16 = 0x0444;
+const MOT_MOVE_RELATIVE: u16 = 0x0448;
+const MOT_MOVE_ABSOLUTE: u16 = 0x0453;
 const MOT_MOVE_VELOCITY: u16 = 0x0457;
 const MOT_MOVE_COMPLETED: u16 = 0x0464;
 const MOT_MOVE_STOP: u16 = 0x0465;
 const MOT_MOVE_STOPPED: u16 = 0x0466;
+const MOT_MOVE_JOG: u16 = 0x046A;
 const MOT_REQ_DCSTATUSUPDATE: u16 = 0x0490;
 const MOT_GET_DCSTATUSUPDATE: u16 = 0x0491;
 const MOT_ACK_DCSTATUSUPDATE: u16 = 0x0492;
@@ -71,7 +89,70 @@ impl VelocityParams {
     }
 }
 
-/// What the driver sends.
+/// A parameter that is one signed 32-bit value per channel, with its set,
+/// request and get messages.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Param {
+    /// MOT_*_GENMOVEPARAMS: the backlash distance, encoder counts.
+    Backlash,
+    /// MOT_*_MOVERELPARAMS: the distance of a relative move.
+    RelativeDistance,
+    /// MOT_*_MOVEABSPARAMS: the target of an absolute move.
+    AbsolutePosition,
+    /// MOT_*_ENCCOUNTER: the encoder counter.
+    EncoderCount,
+}
+
+impl Param {
+    const ALL: [Self; 4] = [
+        Self::Backlash,
+        Self::RelativeDistance,
+        Self::AbsolutePosition,
+        Self::EncoderCount,
+    ];
+
+    /// The (set, request, get) message ids.
+    fn ids(self) -> (u16, u16, u16) {
+        match self {
+            Self::Backlash => (0x043A, 0x043B, 0x043C),
+            Self::RelativeDistance => (0x0445, 0x0446, 0x0447),
+            Self::AbsolutePosition => (0x0450, 0x0451, 0x0452),
+            Self::EncoderCount => (0x0409, 0x040A, 0x040B),
+        }
+    }
+}
+
+/// Jog moves in device units (MOT_SET_JOGPARAMS).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct JogParams {
+    /// 1: continuous while the button is held, 2: one step per jog.
+    pub mode: u16,
+    /// The step, encoder counts.
+    pub step: i32,
+    /// Start velocity.
+    pub min_velocity: i32,
+    /// Acceleration.
+    pub acceleration: i32,
+    /// Velocity.
+    pub max_velocity: i32,
+    /// 1: immediate, 2: profiled.
+    pub stop_mode: u16,
+}
+
+/// Homing in device units (MOT_SET_HOMEPARAMS).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct HomeParams {
+    /// 1: forward, 2: reverse.
+    pub direction: u16,
+    /// The limit switch homed on (1: reverse, 4: forward).
+    pub limit_switch: u16,
+    /// Velocity.
+    pub velocity: i32,
+    /// Distance from the limit switch to the home position, counts.
+    pub offset: i32,
+}
+
+/// What a host sends.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Command {
     /// HW_REQ_INFO: identify the controller.
@@ -98,6 +179,35 @@ pub enum Command {
     RequestStatus(Channel),
     /// MOT_ACK_DCSTATUSUPDATE: keeps status updates flowing.
     AckStatus,
+    /// MOD_IDENTIFY: flash the front panel.
+    Identify,
+    /// HW_DISCONNECT: the host is going away.
+    Disconnect,
+    /// MOT_SET_POSCOUNTER: call the present position this count.
+    SetPosition(Channel, i32),
+    /// Sets a one-value parameter.
+    SetParam(Channel, Param, i32),
+    /// Asks for a one-value parameter.
+    RequestParam(Channel, Param),
+    /// MOT_SET_JOGPARAMS.
+    SetJog(Channel, JogParams),
+    /// MOT_REQ_JOGPARAMS.
+    RequestJog(Channel),
+    /// MOT_MOVE_JOG: one jog step (or, in continuous mode, a move until
+    /// stopped).
+    Jog(Channel, Direction),
+    /// MOT_SET_HOMEPARAMS.
+    SetHome(Channel, HomeParams),
+    /// MOT_REQ_HOMEPARAMS.
+    RequestHome(Channel),
+    /// MOT_MOVE_HOME.
+    Home(Channel),
+    /// MOT_MOVE_RELATIVE: by this distance, or by the stored one.
+    MoveRelative(Channel, Option<i32>),
+    /// MOT_MOVE_ABSOLUTE: to this position, or to the stored one.
+    MoveAbsolute(Channel, Option<i32>),
+    /// MOT_REQ_STATUSBITS.
+    RequestStatusBits(Channel),
 }
 
 /// The controller's identity (HW_GET_INFO).
@@ -113,6 +223,11 @@ pub struct HardwareInfo {
     pub hardware_version: u16,
     /// Channels.
     pub channels: u16,
+    /// Hardware type (the protocol names 44, DC servo controller, and 45,
+    /// multi-channel motherboard).
+    pub kind: u16,
+    /// Free text about the unit.
+    pub notes: String,
 }
 
 /// A status update (MOT_GET_DCSTATUSUPDATE, MOVE_COMPLETED, MOVE_STOPPED).
@@ -122,8 +237,8 @@ pub struct DcStatus {
     pub channel: Channel,
     /// Position counter, encoder counts.
     pub position: i32,
-    /// Velocity as the status word carries it (informational).
-    pub velocity: u16,
+    /// Signed velocity as the status word carries it (informational).
+    pub velocity: i16,
     /// Status bits (limit switches, moving, homed, errors, enabled).
     pub bits: u32,
 }
@@ -162,6 +277,16 @@ pub enum Reply {
     MoveCompleted(DcStatus),
     /// MOT_MOVE_STOPPED.
     MoveStopped(DcStatus),
+    /// MOT_MOVE_HOMED.
+    Homed(Channel),
+    /// The get message of a one-value parameter.
+    Param(Channel, Param, i32),
+    /// MOT_GET_JOGPARAMS.
+    Jog(Channel, JogParams),
+    /// MOT_GET_HOMEPARAMS.
+    Home(Channel, HomeParams),
+    /// MOT_GET_STATUSBITS.
+    StatusBits(Channel, u32),
 }
 
 impl Reply {
@@ -169,9 +294,14 @@ impl Reply {
     pub fn channel(&self) -> Option<Channel> {
         match self {
             Self::Info(_) => None,
-            Self::Enabled(channel, _) | Self::Velocity(channel, _) | Self::Position(channel, _) => {
-                Some(*channel)
-            }
+            Self::Enabled(channel, _)
+            | Self::Velocity(channel, _)
+            | Self::Position(channel, _)
+            | Self::Homed(channel)
+            | Self::Param(channel, ..)
+            | Self::Jog(channel, _)
+            | Self::Home(channel, _)
+            | Self::StatusBits(channel, _) => Some(*channel),
             Self::Status(status) | Self::MoveCompleted(status) | Self::MoveStopped(status) => {
                 Some(status.channel)
             }
@@ -189,6 +319,12 @@ impl Command {
             dest: DEVICE,
             source: HOST,
         };
+        let long = |id: u16, data: Vec<u8>| Frame::Long {
+            id,
+            dest: DEVICE,
+            source: HOST,
+            data,
+        };
         match self {
             Self::RequestInfo => short(HW_REQ_INFO, 0, 0),
             Self::StartUpdates => short(HW_START_UPDATEMSGS, 0, 0),
@@ -197,21 +333,11 @@ impl Command {
                 short(MOD_SET_CHANENABLESTATE, c, if on { 1 } else { 2 })
             }
             Self::RequestEnabled(Channel(c)) => short(MOD_REQ_CHANENABLESTATE, c, 0),
-            Self::SetVelocity(channel, p) => Frame::Long {
-                id: MOT_SET_VELPARAMS,
-                dest: DEVICE,
-                source: HOST,
-                data: p.data(channel),
-            },
+            Self::SetVelocity(channel, p) => long(MOT_SET_VELPARAMS, p.data(channel)),
             Self::RequestVelocity(Channel(c)) => short(MOT_REQ_VELPARAMS, c, 0),
-            Self::MoveVelocity(Channel(c), direction) => short(
-                MOT_MOVE_VELOCITY,
-                c,
-                match direction {
-                    Direction::Forward => 1,
-                    Direction::Reverse => 2,
-                },
-            ),
+            Self::MoveVelocity(Channel(c), direction) => {
+                short(MOT_MOVE_VELOCITY, c, direction.param())
+            }
             Self::Stop(Channel(c), mode) => short(
                 MOT_MOVE_STOP,
                 c,
@@ -223,7 +349,76 @@ impl Command {
             Self::RequestPosition(Channel(c)) => short(MOT_REQ_POSCOUNTER, c, 0),
             Self::RequestStatus(Channel(c)) => short(MOT_REQ_DCSTATUSUPDATE, c, 0),
             Self::AckStatus => short(MOT_ACK_DCSTATUSUPDATE, 0, 0),
+            Self::Identify => short(MOD_IDENTIFY, 0, 0),
+            Self::Disconnect => short(HW_DISCONNECT, 0, 0),
+            Self::SetPosition(channel, value) => {
+                long(MOT_SET_POSCOUNTER, value_data(channel, value))
+            }
+            Self::SetParam(channel, param, value) => {
+                long(param.ids().0, value_data(channel, value))
+            }
+            Self::RequestParam(Channel(c), param) => short(param.ids().1, c, 0),
+            Self::SetJog(channel, p) => long(MOT_SET_JOGPARAMS, p.data(channel)),
+            Self::RequestJog(Channel(c)) => short(MOT_REQ_JOGPARAMS, c, 0),
+            Self::Jog(Channel(c), direction) => short(MOT_MOVE_JOG, c, direction.param()),
+            Self::SetHome(channel, p) => long(MOT_SET_HOMEPARAMS, p.data(channel)),
+            Self::RequestHome(Channel(c)) => short(MOT_REQ_HOMEPARAMS, c, 0),
+            Self::Home(Channel(c)) => short(MOT_MOVE_HOME, c, 0),
+            Self::MoveRelative(Channel(c), None) => short(MOT_MOVE_RELATIVE, c, 0),
+            Self::MoveRelative(channel, Some(value)) => {
+                long(MOT_MOVE_RELATIVE, value_data(channel, value))
+            }
+            Self::MoveAbsolute(Channel(c), None) => short(MOT_MOVE_ABSOLUTE, c, 0),
+            Self::MoveAbsolute(channel, Some(value)) => {
+                long(MOT_MOVE_ABSOLUTE, value_data(channel, value))
+            }
+            Self::RequestStatusBits(Channel(c)) => short(MOT_REQ_STATUSBITS, c, 0),
         }
+    }
+}
+
+/// The data packet of a one-value message: the channel, then the value.
+fn value_data(Channel(c): Channel, value: i32) -> Vec<u8> {
+    let mut data = u16::from(c).to_le_bytes().to_vec();
+    data.extend_from_slice(&value.to_le_bytes());
+    data
+}
+
+impl Direction {
+    /// The parameter byte of a move: 1 forward, 2 reverse.
+    fn param(self) -> u8 {
+        match self {
+            Self::Forward => 1,
+            Self::Reverse => 2,
+        }
+    }
+}
+
+impl JogParams {
+    fn data(&self, Channel(c): Channel) -> Vec<u8> {
+        let mut data = u16::from(c).to_le_bytes().to_vec();
+        data.extend_from_slice(&self.mode.to_le_bytes());
+        for value in [
+            self.step,
+            self.min_velocity,
+            self.acceleration,
+            self.max_velocity,
+        ] {
+            data.extend_from_slice(&value.to_le_bytes());
+        }
+        data.extend_from_slice(&self.stop_mode.to_le_bytes());
+        data
+    }
+}
+
+impl HomeParams {
+    fn data(&self, Channel(c): Channel) -> Vec<u8> {
+        let mut data = u16::from(c).to_le_bytes().to_vec();
+        data.extend_from_slice(&self.direction.to_le_bytes());
+        data.extend_from_slice(&self.limit_switch.to_le_bytes());
+        data.extend_from_slice(&self.velocity.to_le_bytes());
+        data.extend_from_slice(&self.offset.to_le_bytes());
+        data
     }
 }
 
@@ -236,27 +431,41 @@ impl Command {
             2 => Ok(false),
             other => Err(AptError::Unexpected(format!("{what} parameter {other}"))),
         };
+        let direction = |p: u8| {
+            on_off(p, "direction").map(|forward| {
+                if forward {
+                    Direction::Forward
+                } else {
+                    Direction::Reverse
+                }
+            })
+        };
         match frame {
             Frame::Short {
                 id, param1, param2, ..
             } => {
                 let c = Channel(*param1);
+                if let Some(param) = Param::ALL.into_iter().find(|p| p.ids().1 == *id) {
+                    return Ok(Self::RequestParam(c, param));
+                }
                 Ok(match *id {
                     HW_REQ_INFO => Self::RequestInfo,
                     HW_START_UPDATEMSGS => Self::StartUpdates,
                     HW_STOP_UPDATEMSGS => Self::StopUpdates,
+                    HW_DISCONNECT => Self::Disconnect,
+                    MOD_IDENTIFY => Self::Identify,
                     MOT_ACK_DCSTATUSUPDATE => Self::AckStatus,
                     MOD_SET_CHANENABLESTATE => Self::Enable(c, on_off(*param2, "enable state")?),
                     MOD_REQ_CHANENABLESTATE => Self::RequestEnabled(c),
                     MOT_REQ_VELPARAMS => Self::RequestVelocity(c),
-                    MOT_MOVE_VELOCITY => Self::MoveVelocity(
-                        c,
-                        if on_off(*param2, "direction")? {
-                            Direction::Forward
-                        } else {
-                            Direction::Reverse
-                        },
-                    ),
+                    MOT_REQ_JOGPARAMS => Self::RequestJog(c),
+                    MOT_REQ_HOMEPARAMS => Self::RequestHome(c),
+                    MOT_REQ_STATUSBITS => Self::RequestStatusBits(c),
+                    MOT_MOVE_HOME => Self::Home(c),
+                    MOT_MOVE_RELATIVE => Self::MoveRelative(c, None),
+                    MOT_MOVE_ABSOLUTE => Self::MoveAbsolute(c, None),
+                    MOT_MOVE_VELOCITY => Self::MoveVelocity(c, direction(*param2)?),
+                    MOT_MOVE_JOG => Self::Jog(c, direction(*param2)?),
                     MOT_MOVE_STOP => Self::Stop(
                         c,
                         if on_off(*param2, "stop mode")? {
@@ -272,14 +481,48 @@ impl Command {
                     }
                 })
             }
-            Frame::Long { id, data, .. } if *id == MOT_SET_VELPARAMS => {
-                let (channel, params) = Fields::of(*id, data, 14)?.velocity_params();
-                Ok(Self::SetVelocity(channel, params))
+            Frame::Long { id, data, .. } => {
+                let value = || {
+                    let mut f = Fields::of(*id, data, 6)?;
+                    Ok::<_, AptError>((Channel(f.u16() as u8), f.i32()))
+                };
+                if let Some(param) = Param::ALL.into_iter().find(|p| p.ids().0 == *id) {
+                    let (c, v) = value()?;
+                    return Ok(Self::SetParam(c, param, v));
+                }
+                Ok(match *id {
+                    MOT_SET_VELPARAMS => {
+                        let (channel, params) = Fields::of(*id, data, 14)?.velocity_params();
+                        Self::SetVelocity(channel, params)
+                    }
+                    MOT_SET_JOGPARAMS => {
+                        let (channel, params) = Fields::of(*id, data, 22)?.jog_params();
+                        Self::SetJog(channel, params)
+                    }
+                    MOT_SET_HOMEPARAMS => {
+                        let (channel, params) = Fields::of(*id, data, 14)?.home_params();
+                        Self::SetHome(channel, params)
+                    }
+                    MOT_SET_POSCOUNTER => {
+                        let (c, v) = value()?;
+                        Self::SetPosition(c, v)
+                    }
+                    MOT_MOVE_RELATIVE => {
+                        let (c, v) = value()?;
+                        Self::MoveRelative(c, Some(v))
+                    }
+                    MOT_MOVE_ABSOLUTE => {
+                        let (c, v) = value()?;
+                        Self::MoveAbsolute(c, Some(v))
+                    }
+                    other => {
+                        return Err(AptError::Unexpected(format!(
+                            "command 0x{other:04x} with {} data bytes",
+                            data.len()
+                        )));
+                    }
+                })
             }
-            Frame::Long { id, data, .. } => Err(AptError::Unexpected(format!(
-                "command 0x{id:04x} with {} data bytes",
-                data.len()
-            ))),
         }
     }
 }
@@ -338,11 +581,35 @@ impl<'a> Fields<'a> {
         (channel, params)
     }
 
+    fn jog_params(&mut self) -> (Channel, JogParams) {
+        let channel = Channel(self.u16() as u8);
+        let params = JogParams {
+            mode: self.u16(),
+            step: self.i32(),
+            min_velocity: self.i32(),
+            acceleration: self.i32(),
+            max_velocity: self.i32(),
+            stop_mode: self.u16(),
+        };
+        (channel, params)
+    }
+
+    fn home_params(&mut self) -> (Channel, HomeParams) {
+        let channel = Channel(self.u16() as u8);
+        let params = HomeParams {
+            direction: self.u16(),
+            limit_switch: self.u16(),
+            velocity: self.i32(),
+            offset: self.i32(),
+        };
+        (channel, params)
+    }
+
     fn status(&mut self) -> DcStatus {
         DcStatus {
             channel: Channel(self.u16() as u8),
             position: self.i32(),
-            velocity: self.u16(),
+            velocity: self.u16() as i16,
             bits: {
                 let _reserved = self.u16();
                 self.u32()
@@ -362,6 +629,11 @@ impl Reply {
                 param2,
                 ..
             } => Ok(Self::Enabled(Channel(*param1), *param2 == 1)),
+            Frame::Short {
+                id: MOT_MOVE_HOMED,
+                param1,
+                ..
+            } => Ok(Self::Homed(Channel(*param1))),
             // HW_RESPONSE is header-only: a fault that needs attention.
             Frame::Short {
                 id: HW_RESPONSE,
@@ -387,9 +659,9 @@ impl Reply {
                 let mut f = Fields::of(id, data, 84)?;
                 let serial = f.u32();
                 let model = f.text::<8>();
-                let _kind = f.u16();
+                let kind = f.u16();
                 let [minor, interim, major, _] = f.take::<4>();
-                let _notes = f.take::<48>();
+                let notes = f.text::<48>();
                 let _empty = f.take::<12>();
                 let hardware_version = f.u16();
                 let _modification = f.u16();
@@ -400,7 +672,21 @@ impl Reply {
                     firmware: format!("{major}.{interim}.{minor}"),
                     hardware_version,
                     channels,
+                    kind,
+                    notes,
                 }))
+            }
+            MOT_GET_JOGPARAMS => {
+                let (channel, params) = Fields::of(id, data, 22)?.jog_params();
+                Ok(Self::Jog(channel, params))
+            }
+            MOT_GET_HOMEPARAMS => {
+                let (channel, params) = Fields::of(id, data, 14)?.home_params();
+                Ok(Self::Home(channel, params))
+            }
+            MOT_GET_STATUSBITS => {
+                let mut f = Fields::of(id, data, 6)?;
+                Ok(Self::StatusBits(Channel(f.u16() as u8), f.u32()))
             }
             MOT_GET_VELPARAMS => {
                 let (channel, params) = Fields::of(id, data, 14)?.velocity_params();
@@ -423,10 +709,16 @@ impl Reply {
                     text: f.text::<64>(),
                 })
             }
-            _ => Err(AptError::Unexpected(format!(
-                "message 0x{id:04x} with {} data bytes",
-                data.len()
-            ))),
+            _ => match Param::ALL.into_iter().find(|p| p.ids().2 == id) {
+                Some(param) => {
+                    let mut f = Fields::of(id, data, 6)?;
+                    Ok(Self::Param(Channel(f.u16() as u8), param, f.i32()))
+                }
+                None => Err(AptError::Unexpected(format!(
+                    "message 0x{id:04x} with {} data bytes",
+                    data.len()
+                ))),
+            },
         }
     }
 
@@ -455,7 +747,7 @@ impl Reply {
                     *slot = byte;
                 }
                 data.extend_from_slice(&model);
-                data.extend_from_slice(&0u16.to_le_bytes());
+                data.extend_from_slice(&info.kind.to_le_bytes());
                 let version: Vec<u8> = info
                     .firmware
                     .split('.')
@@ -465,7 +757,12 @@ impl Reply {
                     .take(4)
                     .collect();
                 data.extend_from_slice(&version);
-                data.extend_from_slice(&[0u8; 60]);
+                let mut notes = [0u8; 48];
+                for (slot, byte) in notes.iter_mut().zip(info.notes.bytes()) {
+                    *slot = byte;
+                }
+                data.extend_from_slice(&notes);
+                data.extend_from_slice(&[0u8; 12]);
                 data.extend_from_slice(&info.hardware_version.to_le_bytes());
                 data.extend_from_slice(&0u16.to_le_bytes());
                 data.extend_from_slice(&info.channels.to_le_bytes());
@@ -479,10 +776,23 @@ impl Reply {
                 source: DEVICE,
             },
             Self::Velocity(channel, p) => long(MOT_GET_VELPARAMS, p.data(*channel)),
-            Self::Position(Channel(c), position) => {
+            Self::Position(channel, position) => {
+                long(MOT_GET_POSCOUNTER, value_data(*channel, *position))
+            }
+            Self::Homed(Channel(c)) => Frame::Short {
+                id: MOT_MOVE_HOMED,
+                param1: *c,
+                param2: 0,
+                dest: HOST,
+                source: DEVICE,
+            },
+            Self::Param(channel, param, value) => long(param.ids().2, value_data(*channel, *value)),
+            Self::Jog(channel, p) => long(MOT_GET_JOGPARAMS, p.data(*channel)),
+            Self::Home(channel, p) => long(MOT_GET_HOMEPARAMS, p.data(*channel)),
+            Self::StatusBits(Channel(c), bits) => {
                 let mut data = u16::from(*c).to_le_bytes().to_vec();
-                data.extend_from_slice(&position.to_le_bytes());
-                long(MOT_GET_POSCOUNTER, data)
+                data.extend_from_slice(&bits.to_le_bytes());
+                long(MOT_GET_STATUSBITS, data)
             }
             Self::Status(s) => status(MOT_GET_DCSTATUSUPDATE, s),
             Self::MoveCompleted(s) => status(MOT_MOVE_COMPLETED, s),
@@ -496,6 +806,20 @@ mod tests {
     use super::*;
 
     const CH: Channel = Channel(1);
+    const JOG: JogParams = JogParams {
+        mode: 2,
+        step: 3455,
+        min_velocity: 0,
+        acceleration: 396,
+        max_velocity: 1_159_471,
+        stop_mode: 2,
+    };
+    const HOME: HomeParams = HomeParams {
+        direction: 2,
+        limit_switch: 1,
+        velocity: 772_981,
+        offset: 3455,
+    };
 
     #[test]
     fn commands_have_the_protocol_bytes() {
@@ -549,6 +873,21 @@ mod tests {
             Command::RequestPosition(CH),
             Command::RequestStatus(CH),
             Command::AckStatus,
+            Command::Identify,
+            Command::Disconnect,
+            Command::SetPosition(CH, -5),
+            Command::SetParam(CH, Param::Backlash, 276),
+            Command::RequestParam(CH, Param::AbsolutePosition),
+            Command::SetJog(CH, JOG),
+            Command::RequestJog(CH),
+            Command::Jog(CH, Direction::Reverse),
+            Command::SetHome(CH, HOME),
+            Command::RequestHome(CH),
+            Command::Home(CH),
+            Command::MoveRelative(CH, None),
+            Command::MoveRelative(CH, Some(-34_555)),
+            Command::MoveAbsolute(CH, Some(69_110)),
+            Command::RequestStatusBits(CH),
         ] {
             assert_eq!(Command::from_frame(&command.to_frame()).unwrap(), command);
         }
@@ -559,7 +898,7 @@ mod tests {
         let status = DcStatus {
             channel: CH,
             position: -123_456,
-            velocity: 7,
+            velocity: -7,
             bits: 0x8000_0010,
         };
         assert!(status.enabled() && status.moving() && !status.at_limit());
@@ -570,6 +909,8 @@ mod tests {
                 firmware: "3.0.10".into(),
                 hardware_version: 1,
                 channels: 1,
+                kind: 44,
+                notes: "a note".into(),
             }),
             Reply::Enabled(CH, true),
             Reply::Velocity(
@@ -584,6 +925,11 @@ mod tests {
             Reply::Status(status),
             Reply::MoveCompleted(status),
             Reply::MoveStopped(status),
+            Reply::Homed(CH),
+            Reply::Param(CH, Param::RelativeDistance, -7),
+            Reply::Jog(CH, JOG),
+            Reply::Home(CH, HOME),
+            Reply::StatusBits(CH, 0x8000_0400),
         ] {
             assert_eq!(Reply::from_frame(&reply.to_frame()).unwrap(), reply);
         }
@@ -664,6 +1010,8 @@ mod tests {
             firmware: "1.0.0".into(),
             hardware_version: 1,
             channels: 1,
+            kind: 44,
+            notes: String::new(),
         });
         assert_eq!(info.channel(), None);
     }
