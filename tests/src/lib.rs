@@ -259,14 +259,30 @@ pub async fn connect(addr: &str, name: &str) -> tweezer_rpc::AuthChannel {
 /// given), waits for its first stdout line, `<bin> listening on ADDR`, and
 /// returns it with ADDR.
 pub fn start_service(bin: &str, args: &[&str], log: Option<&Path>) -> (Child, String) {
+    let mut command = Command::new(binary(bin));
+    command.args(args);
+    spawn_service(bin, command, log)
+}
+
+/// [`start_service`] with the process's open-files limit (soft and hard)
+/// set to `limit`, as a default login or service manager might leave it.
+pub fn start_service_with_open_files(bin: &str, args: &[&str], limit: u64) -> (Child, String) {
+    let mut command = Command::new("sh");
+    command
+        .args(["-c", &format!("ulimit -n {limit} && exec \"$0\" \"$@\"")])
+        .arg(binary(bin))
+        .args(args);
+    spawn_service(bin, command, None)
+}
+
+fn spawn_service(bin: &str, mut command: Command, log: Option<&Path>) -> (Child, String) {
     let stderr = match log {
         Some(path) => Stdio::from(
             std::fs::File::create(path).unwrap_or_else(|e| panic!("cannot create the log: {e}")),
         ),
         None => Stdio::null(),
     };
-    let mut child = Command::new(binary(bin))
-        .args(args)
+    let mut child = command
         .stdout(Stdio::piped())
         .stderr(stderr)
         .spawn()
