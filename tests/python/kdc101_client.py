@@ -65,18 +65,16 @@ def main(port):
     seen["jog"] = wait(lambda: abs(abs(status["position"] - target) - int(0.25 * COUNTS_PER_MM)) <= 2 and still(status))
     seen["after_jog"] = status["position"]
 
-    stage.move_velocity("forward")
-    time.sleep(0.6)
-    p0, v = status["position"], status["velocity"]
-    time.sleep(0.3)
-    p1 = status["position"]
-    seen["velocity_moving"] = [p0, v, p1]
-    stage.move_velocity("reverse")
-    time.sleep(1.2)
-    q0, w = status["position"], status["velocity"]
-    time.sleep(0.3)
-    q1 = status["position"]
-    seen["velocity_reversed"] = [q0, w, q1]
+    def velocity_move(direction, settle):
+        """[position, velocity, position 0.3 s later] once moving."""
+        stage.move_velocity(direction)
+        time.sleep(settle)
+        before, velocity = status["position"], status["velocity"]
+        time.sleep(0.3)
+        return [before, velocity, status["position"]]
+
+    seen["velocity_moving"] = velocity_move("forward", 0.6)
+    seen["velocity_reversed"] = velocity_move("reverse", 1.2)
     stage.stop(immediate=True)
     seen["stopped"] = wait(lambda: still(status) and status["velocity"] == 0)
     stage.close()
