@@ -1,5 +1,7 @@
 //! The paper's actor and critic networks (`docs/spec.md` §3) in Burn, shared by
-//! the learner, the actors and the hardware agent.
+//! the learner, the actors and the hardware agent, and beside them networks
+//! that read the sphere centres directly ([`SetActor`], [`SetCritic`]):
+//! permutation-invariant, exact at any field of view, no rendering.
 //!
 //! Both take the binary image observation `[batch, 1, height, width]` and the
 //! target vector `[batch, 2]`; the critic also takes the action `[batch, 2]`.
@@ -13,7 +15,11 @@ mod encoder;
 mod head;
 mod images;
 mod policy;
+mod set_actor;
+mod set_critic;
+mod set_encoder;
 mod snapshot;
+mod spheres;
 
 pub use actor::{Actor, ActorConfig};
 pub use critic::{Critic, CriticConfig};
@@ -21,6 +27,10 @@ pub use encoder::{Encoder, EncoderConfig};
 pub use head::{Head, HeadConfig};
 pub use images::render_images;
 pub use policy::{NetworkPolicy, PolicyFileError};
+pub use set_actor::{SetActor, SetActorConfig};
+pub use set_critic::{SetCritic, SetCriticConfig};
+pub use set_encoder::{SetEncoder, SetEncoderConfig};
 pub use snapshot::{
     ARCHITECTURE, SnapshotError, SnapshotInfo, decode, encode, file_sha256, read_info,
 };
+pub use spheres::{SPHERE_FEATURES, SetBatch, SphereSets};

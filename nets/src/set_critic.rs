@@ -1,0 +1,52 @@
+//! The action-value network that reads sphere centres.
+
+use crate::head::{Head, HeadConfig};
+use crate::set_encoder::{SetEncoder, SetEncoderConfig};
+use crate::spheres::SetBatch;
+use burn::config::Config;
+use burn::module::Module;
+use burn::tensor::{Device, Tensor};
+
+/// Sphere set, target vector and action in, Q value out.
+#[derive(Module, Debug)]
+pub struct SetCritic {
+    encoder: SetEncoder,
+    head: Head,
+}
+
+/// The set critic's shape.
+#[derive(Config, Debug)]
+pub struct SetCriticConfig {
+    /// The set encoder.
+    pub encoder: SetEncoderConfig,
+    /// Width of the two hidden layers after pooling.
+    #[config(default = 64)]
+    pub hidden: usize,
+}
+
+impl SetCriticConfig {
+    /// A critic with freshly initialised weights on `device`.
+    pub fn init(&self, device: &Device) -> SetCritic {
+        SetCritic {
+            encoder: self.encoder.init(device),
+            head: HeadConfig::new(self.encoder.features() + 4, 1)
+                .with_hidden(self.hidden)
+                .init(device),
+        }
+    }
+}
+
+impl SetCritic {
+    /// Estimates Q(observation, action).
+    ///
+    /// # Shapes
+    /// - `set`: see [`crate::SetBatch`]
+    /// - `vector`: `[batch, 2]`
+    /// - `action`: `[batch, 2]`
+    /// - output: `[batch, 1]`
+    pub fn forward(&self, set: SetBatch, vector: Tensor<2>, action: Tensor<2>) -> Tensor<2> {
+        let x = self.encoder.forward(set); // [batch, 2 * set hidden]
+        let x = Tensor::cat(vec![x, vector, action], 1); // [batch, 2 * set hidden + 4]
+        self.head.forward(x) // [batch, 1]
+    }
+}
