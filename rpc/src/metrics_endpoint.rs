@@ -99,12 +99,27 @@ fn respond<B>(
         );
         return response;
     }
-    let mut response = reply(StatusCode::OK, metrics.encode());
+    // OpenMetrics to a scraper that asks for it, the 0.0.4 text otherwise.
+    let openmetrics = request
+        .headers()
+        .get(header::ACCEPT)
+        .and_then(|accept| accept.to_str().ok())
+        .is_some_and(|accept| accept.contains("application/openmetrics-text"));
+    let (body, content_type) = if openmetrics {
+        (
+            metrics.encode(),
+            "application/openmetrics-text; version=1.0.0; charset=utf-8",
+        )
+    } else {
+        (
+            metrics.encode_text(),
+            "text/plain; version=0.0.4; charset=utf-8",
+        )
+    };
+    let mut response = reply(StatusCode::OK, body);
     response.headers_mut().insert(
         header::CONTENT_TYPE,
-        header::HeaderValue::from_static(
-            "application/openmetrics-text; version=1.0.0; charset=utf-8",
-        ),
+        header::HeaderValue::from_static(content_type),
     );
     response
 }

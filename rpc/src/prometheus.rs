@@ -1,6 +1,8 @@
 //! A process's Prometheus metrics: histograms fed as things happen, and samples
-//! read from the process's status at each scrape, exposed as OpenMetrics text
-//! at `GET /metrics` (see [`crate::ServerSecurity::serve_metrics`]).
+//! read from the process's status at each scrape, exposed at `GET /metrics`
+//! (see [`crate::ServerSecurity::serve_metrics`]) as OpenMetrics text to a
+//! scraper that asks for it (Prometheus does), and otherwise in Prometheus'
+//! text format 0.0.4 (curl, `promtool check metrics`).
 
 use prometheus_client::collector::Collector;
 use prometheus_client::encoding::{DescriptorEncoder, EncodeMetric};
@@ -8,6 +10,7 @@ use prometheus_client::metrics::counter::ConstCounter;
 use prometheus_client::metrics::gauge::ConstGauge;
 pub use prometheus_client::metrics::histogram::{Histogram, exponential_buckets};
 use prometheus_client::registry::Registry;
+use std::collections::HashSet;
 
 /// One sample of a process's status, read at scrape time.
 #[derive(Clone, Debug, PartialEq)]
@@ -105,6 +108,8 @@ impl Prometheus {
     /// Exposes `histogram` (a handle: whoever observes into a clone feeds
     /// it).
     pub fn histogram(&mut self, name: &str, help: &str, histogram: &Histogram) {
+        // The encoder ends every help text with a full stop of its own.
+        let help = help.trim_end_matches('.');
         self.registry.register(name, help, histogram.clone());
     }
 
@@ -119,6 +124,32 @@ impl Prometheus {
         let mut text = String::new();
         prometheus_client::encoding::text::encode(&mut text, &self.registry)
             .expect("writing to a String cannot fail");
+        text
+    }
+
+    /// The metrics in Prometheus' text format 0.0.4: the OpenMetrics text
+    /// with each counter's HELP and TYPE named as its sample is (with
+    /// `_total`), and without the `# EOF` and `# UNIT` lines.
+    pub fn encode_text(&self) -> String {
+        let open = self.encode();
+        let counters: HashSet<&str> = open
+            .lines()
+            .filter_map(|line| line.strip_prefix("# TYPE ")?.strip_suffix(" counter"))
+            .collect();
+        let mut text = String::with_capacity(open.len() + 16 * counters.len());
+        for line in open.lines() {
+            if line == "# EOF" || line.starts_with("# UNIT ") {
+                continue;
+            }
+            let renamed = ["# HELP ", "# TYPE "].into_iter().find_map(|prefix| {
+                let (name, rest) = line.strip_prefix(prefix)?.split_once(' ')?;
+                counters
+                    .contains(name)
+                    .then(|| format!("{prefix}{name}_total {rest}"))
+            });
+            text.push_str(renamed.as_deref().unwrap_or(line));
+            text.push('\n');
+        }
         text
     }
 }
@@ -160,5 +191,19 @@ mod tests {
             "{text}"
         );
         assert!(text.ends_with("# EOF\n"), "{text}");
+        assert!(text.contains("# HELP tweezer_test_update_seconds Time per update.\n"));
+
+        let text = metrics.encode_text();
+        assert!(
+            text.contains("# HELP tweezer_test_steps_inserted_total Steps stored.\n"),
+            "{text}"
+        );
+        assert!(
+            text.contains("# TYPE tweezer_test_steps_inserted_total counter\n"),
+            "{text}"
+        );
+        assert!(text.contains("# TYPE tweezer_test_buffer_fill gauge\n"));
+        assert!(text.contains("# TYPE tweezer_test_update_seconds histogram\n"));
+        assert!(!text.contains("# EOF"), "{text}");
     }
 }

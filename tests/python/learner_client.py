@@ -41,13 +41,20 @@ def main(stubs, address, metrics_address, ca_file, token_file):
         )
 
     context = ssl.create_default_context(cafile=ca_file)
-    request = urllib.request.Request(
-        f"https://{metrics_address}/metrics",
-        headers={"Authorization": f"Bearer {token}"},
-    )
-    with urllib.request.urlopen(request, context=context, timeout=10) as response:
-        content_type = response.headers["Content-Type"]
-        text = response.read().decode()
+    def scrape(accept):
+        headers = {"Authorization": f"Bearer {token}"}
+        if accept:
+            headers["Accept"] = accept
+        request = urllib.request.Request(f"https://{metrics_address}/metrics", headers=headers)
+        with urllib.request.urlopen(request, context=context, timeout=10) as response:
+            return response.headers["Content-Type"], response.read().decode()
+
+    content_type, text = scrape("application/openmetrics-text; version=1.0.0")
+    # Without asking: Prometheus' text format 0.0.4, read by its own parser.
+    from prometheus_client.parser import text_string_to_metric_families as text_families
+
+    plain_type, plain = scrape(None)
+    plain_families = {f.name: f.type for f in text_families(plain)}
     families = {}
     for family in text_string_to_metric_families(text):
         families[family.name] = {
@@ -64,6 +71,8 @@ def main(stubs, address, metrics_address, ca_file, token_file):
                 "without_token": without_token,
                 "health": health_pb2.HealthCheckResponse.ServingStatus.Name(health.status),
                 "content_type": content_type,
+                "plain_content_type": plain_type,
+                "plain_families": plain_families,
                 "families": families,
             }
         )

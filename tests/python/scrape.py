@@ -25,7 +25,13 @@ def main(address, ca_file, token_file):
         without_token = 200
     except urllib.error.HTTPError as e:
         without_token = e.code
-    request = urllib.request.Request(url, headers={"Authorization": f"Bearer {token}"})
+    request = urllib.request.Request(
+        url,
+        headers={
+            "Authorization": f"Bearer {token}",
+            "Accept": "application/openmetrics-text; version=1.0.0",
+        },
+    )
     with urllib.request.urlopen(request, context=context, timeout=10) as response:
         text = response.read().decode()
     families = {

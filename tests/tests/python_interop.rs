@@ -79,6 +79,19 @@ fn a_python_grpcio_client_reads_the_learner_over_tls_with_a_token() {
             .starts_with("application/openmetrics-text"),
         "{seen}"
     );
+    // A scraper that does not ask for OpenMetrics gets the 0.0.4 text.
+    assert!(
+        seen["plain_content_type"]
+            .as_str()
+            .unwrap()
+            .starts_with("text/plain; version=0.0.4"),
+        "{seen}"
+    );
+    assert_eq!(seen["plain_families"]["tweezer_learner_updates"], "counter");
+    assert_eq!(
+        seen["plain_families"]["tweezer_learner_update_seconds"],
+        "histogram"
+    );
     let families = &seen["families"];
     let capacity = &families["tweezer_learner_buffer_capacity"];
     assert_eq!(capacity["type"], "gauge", "{seen}");
