@@ -49,13 +49,7 @@ port() { python3 -c 'import socket; s = socket.socket(); s.bind(("127.0.0.1", 0)
 learner_metrics="127.0.0.1:$(port)"
 agent_metrics="127.0.0.1:$(port)"
 actor_metrics="127.0.0.1:$(port)"
-env='[env]
-min_free_spheres = 0
-max_free_spheres = 0
-time_limit = 200
-[env.image]
-width = 20
-height = 16'
+env="$(cat "$here/../tiny-env.toml")"
 printf '%s\n[learner]\nlisten = "127.0.0.1:0"\nmetrics_listen = "%s"\n' "$env" "$learner_metrics" > learner.toml
 
 "$bin/learner" serve --security server.toml --config learner.toml --run-dir run > learner.out 2> learner.log &

@@ -139,13 +139,7 @@ printf 'cert = "learner.crt"\nkey = "learner.key"\ntokens = "tokens"\n' > "$sec/
 printf 'ca = "ca.crt"\ntoken_file = "actor.token"\n' > "$sec/actor.toml"
 printf 'ca = "ca.crt"\n' > "$sec/probe.toml"
 
-env_table='[env]
-min_free_spheres = 0
-max_free_spheres = 0
-time_limit = 200
-[env.image]
-width = 20
-height = 16'
+env_table="$(cat "$here/../tiny-env.toml")"
 cat > "$work/learner.toml" <<EOF
 $env_table
 [learner]
