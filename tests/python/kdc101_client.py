@@ -1,7 +1,8 @@
 """Drives a KDC101 on a serial port with thorlabs-apt-device, as a lab's
 script would, and prints what it saw as one JSON object.
 
-Usage: kdc101_client.py PORT
+Usage: kdc101_client.py PORT AUTO_PORT (two controllers: the second is
+only ever driven with status updates the controller sends by itself)
 """
 
 import json
@@ -31,7 +32,7 @@ def still(status):
     )
 
 
-def main(port):
+def main(port, auto_port):
     seen = {}
     stage = KDC101(serial_port=port, home=False)
     status = stage.status
@@ -82,22 +83,25 @@ def main(port):
     # Status updates the controller sends by itself (HW_START_UPDATEMSGS):
     # nothing polls here, so only they can move the position.
     auto = APTDevice_Motor(
-        serial_port=port,
+        serial_port=auto_port,
         status_updates="auto",
         controller=EndPoint.USB,
         bays=(EndPoint.USB,),
         channels=(1,),
         home=False,
     )
+    auto.set_enabled(True)
+    auto.set_velocity_params(acceleration=2 * 264, max_velocity=VELOCITY_PER_MM_S)
     time.sleep(0.5)
     moving = auto.status_[0][0]
     start, target = moving["position"], int(3.0 * COUNTS_PER_MM)
     auto.move_absolute(target)
     # A position on the way: no MOVE_COMPLETED carries one.
-    seen["auto_updates"] = wait(lambda: start + 1000 < moving["position"] < target - 1000)
+    lo, hi = min(start, target) + 1000, max(start, target) - 1000
+    seen["auto_updates"] = wait(lambda: lo < moving["position"] < hi)
     auto.close()
     print(json.dumps(seen))
 
 
 if __name__ == "__main__":
-    main(sys.argv[1])
+    main(sys.argv[1], sys.argv[2])

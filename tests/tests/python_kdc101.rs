@@ -16,16 +16,23 @@ const COUNTS_PER_MM: f64 = 34_554.96;
 fn thorlabs_apt_device_homes_moves_and_reads_the_simulated_kdc101() {
     let dir = tempfile::tempdir().unwrap();
     let bin = python_venv(dir.path(), "requirements-kdc101.txt");
-    let twin = kdc101::PtySimulator::spawn(
-        27_000_123,
-        kdc101::ActuatorModel::default(),
-        Duration::from_millis(2),
-    )
-    .unwrap();
+    let spawn = |serial| {
+        kdc101::PtySimulator::spawn(
+            serial,
+            kdc101::ActuatorModel::default(),
+            Duration::from_millis(2),
+        )
+        .unwrap()
+    };
+    let (twin, auto) = (spawn(27_000_123), spawn(27_000_124));
     let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("python/kdc101_client.py");
     let out = check(
         &bin.join("python"),
-        &[script.to_str().unwrap(), twin.path().to_str().unwrap()],
+        &[
+            script.to_str().unwrap(),
+            twin.path().to_str().unwrap(),
+            auto.path().to_str().unwrap(),
+        ],
     );
     let seen: Value = serde_json::from_str(out.lines().last().unwrap_or_default())
         .unwrap_or_else(|e| panic!("{e}: {out}"));
