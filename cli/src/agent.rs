@@ -3,6 +3,7 @@
 use crate::AgentCommand;
 use crate::connect::{call_error, channel};
 use crate::fields;
+use crate::watch::Trend;
 use anyhow::{Context, anyhow};
 use serde::Deserialize;
 use std::path::Path;
@@ -51,7 +52,8 @@ pub async fn run(
         HardwareAgentClient::new(channel(security, address, "hardware agent", "--agent").await?);
     let reply = match command {
         AgentCommand::Status { watch } => {
-            return crate::watch::repeat(watch, json, || {
+            let trends = [Trend::Value("latency_ms"), Trend::Value("loop_period_ms")];
+            return crate::watch::repeat(watch, json, &trends, || {
                 let mut client = client.clone();
                 async move { Ok(fields::agent(&status(&mut client).await?)) }
             })

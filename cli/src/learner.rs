@@ -3,6 +3,7 @@
 use crate::LearnerCommand;
 use crate::connect::{call_error, channel};
 use crate::fields;
+use crate::watch::Trend;
 use anyhow::{Context, anyhow};
 use std::path::Path;
 use tweezer_proto::pb::learner_client::LearnerClient;
@@ -29,7 +30,13 @@ pub async fn run(
         .max_decoding_message_size(64 << 20);
     match command {
         LearnerCommand::Status { watch } => {
-            crate::watch::repeat(watch, json, || {
+            let trends = [
+                Trend::Value("rolling_return"),
+                Trend::Value("success_rate"),
+                Trend::PerSecond("updates"),
+                Trend::PerSecond("steps_inserted"),
+            ];
+            crate::watch::repeat(watch, json, &trends, || {
                 let mut client = client.clone();
                 async move { Ok(fields::learner(&status(&mut client).await?)) }
             })

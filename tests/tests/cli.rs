@@ -160,3 +160,45 @@ fn the_cli_reads_the_learner_and_drives_the_agent() {
     );
     assert!(err.contains("--agent"), "{err}");
 }
+
+#[test]
+fn watching_the_learner_draws_its_trends_under_the_table() {
+    let dir = tempfile::tempdir().unwrap();
+    let config = write(
+        &dir.path().join("learner.toml"),
+        &format!("{TINY_ENV}\n[learner]\nlisten = \"127.0.0.1:0\"\n"),
+    );
+    let run_dir = dir.path().join("run");
+    let (learner, addr) =
+        start_learner(&["--config", &config, "--run-dir", run_dir.to_str().unwrap()]);
+    let security = credentials().file("read");
+    let mut watch = std::process::Command::new(tweezer_system_tests::binary("tweezer"))
+        .args(["--security", &security, "learner", "--learner", &addr])
+        .args(["status", "--watch", "0.2"])
+        .stdout(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    std::thread::sleep(std::time::Duration::from_secs(3));
+    let _ = watch.kill();
+    let out = watch.wait_with_output().unwrap();
+    let text = String::from_utf8_lossy(&out.stdout);
+    // Every poll prints the table, then one line per trend; the rates need
+    // two polls.
+    let last = text
+        .rsplit("\n\n")
+        .find(|poll| !poll.trim().is_empty())
+        .unwrap();
+    for label in [
+        "rolling_return",
+        "success_rate",
+        "updates/s",
+        "steps_inserted/s",
+    ] {
+        let line = last
+            .lines()
+            .find(|l| l.starts_with(label) && l.contains("range"))
+            .unwrap_or_else(|| panic!("no {label} trend in {last}"));
+        assert!(line.contains('▁'), "{line}");
+    }
+    assert!(stop(learner).0.success());
+}
