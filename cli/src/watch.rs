@@ -96,28 +96,28 @@ impl Trends {
         for (trend, history) in self.trends.iter().zip(&self.history) {
             let values: Vec<f64> = history.iter().copied().collect();
             let Some(&last) = values.last() else { continue };
-            let (lo, hi) = values
-                .iter()
-                .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), &v| {
-                    (lo.min(v), hi.max(v))
-                });
+            let (lo, hi) = range(&values);
             println!(
                 "{:<width$}  {}  {last:.3} (range {lo:.3} to {hi:.3})",
                 trend.label(),
-                sparkline(&values)
+                sparkline(&values, (lo, hi))
             );
         }
     }
 }
 
-/// `values` as bars scaled between their minimum and maximum (all at the
-/// lowest level when they are equal).
-fn sparkline(values: &[f64]) -> String {
-    let (lo, hi) = values
+/// The smallest and largest of `values`.
+fn range(values: &[f64]) -> (f64, f64) {
+    values
         .iter()
         .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), &v| {
             (lo.min(v), hi.max(v))
-        });
+        })
+}
+
+/// `values` as bars scaled over their `range` (all at the lowest level
+/// when it is empty).
+fn sparkline(values: &[f64], (lo, hi): (f64, f64)) -> String {
     values
         .iter()
         .map(|&v| {
@@ -179,8 +179,10 @@ mod tests {
 
     #[test]
     fn sparklines_span_the_range_and_rates_come_from_counters() {
-        assert_eq!(sparkline(&[0.0, 1.0, 2.0, 3.0, 7.0]), "▁▂▃▄█");
-        assert_eq!(sparkline(&[5.0, 5.0]), "▁▁");
+        let values = [0.0, 1.0, 2.0, 3.0, 7.0];
+        assert_eq!(range(&values), (0.0, 7.0));
+        assert_eq!(sparkline(&values, range(&values)), "▁▂▃▄█");
+        assert_eq!(sparkline(&[5.0, 5.0], range(&[5.0, 5.0])), "▁▁");
         let mut trends = Trends::new(&[Trend::Value("success_rate"), Trend::PerSecond("updates")]);
         let start = Instant::now();
         for (k, (success, updates)) in [(0.1, 0), (0.5, 30), (0.9, 90)].into_iter().enumerate() {

@@ -251,7 +251,7 @@ impl<P: Read + Write> Axis<P> {
     /// other message is an error: the motor is stopped (immediately) and
     /// the driver out of step before it is returned.
     fn await_reply(&mut self, wanted: impl Fn(&Reply) -> bool) -> Result<Reply, AptError> {
-        let reply = self.read_reply(wanted);
+        let reply = self.read_reply(wanted, Stray::Refuse);
         if reply.is_err() {
             self.lost_step();
         }
@@ -275,7 +275,7 @@ impl<P: Read + Write> Axis<P> {
         for _ in 0..RESYNC_ATTEMPTS {
             self.purge()?;
             self.send(Command::RequestInfo)?;
-            match self.read_reply_skipping(|r| matches!(r, Reply::Info(_))) {
+            match self.read_reply(|r| matches!(r, Reply::Info(_)), Stray::Discard) {
                 Ok(Reply::Info(info)) => {
                     if let Some(serial) = self.serial.filter(|&s| s != info.serial) {
                         return Err(AptError::Unexpected(format!(
@@ -286,7 +286,7 @@ impl<P: Read + Write> Axis<P> {
                     self.in_step = true;
                     return Ok(info);
                 }
-                Ok(_) => unreachable!("read_reply_skipping returns what was asked for"),
+                Ok(_) => unreachable!("read_reply returns what was asked for"),
                 Err(e @ (AptError::Io(_) | AptError::Device { .. })) => return Err(e),
                 Err(e) => failure = Some(e),
             }
@@ -332,22 +332,46 @@ impl<P: Read + Write> Axis<P> {
         }
     }
 
-    /// The next reply `wanted` accepts within the timeout, discarding every
-    /// other message and any garbled bytes on the way (getting in step).
-    fn read_reply_skipping(&mut self, wanted: impl Fn(&Reply) -> bool) -> Result<Reply, AptError> {
+    /// The next reply `wanted` accepts within the timeout. Status messages
+    /// the controller sends by itself are skipped; what else comes unasked
+    /// (a reply for another channel, another message, garbled bytes) is an
+    /// error or discarded, as `stray` says. A controller's error report and
+    /// a failed port are errors either way.
+    fn read_reply(
+        &mut self,
+        wanted: impl Fn(&Reply) -> bool,
+        stray: Stray,
+    ) -> Result<Reply, AptError> {
+        let refuse = stray == Stray::Refuse;
         let deadline = Instant::now() + self.timeout;
         loop {
-            match self.io.read_frame() {
-                Ok(frame) => match Reply::from_frame(&frame) {
-                    Ok(reply) if wanted(&reply) => return Ok(reply),
-                    Err(e @ AptError::Device { .. }) => return Err(e),
-                    _ => {}
-                },
-                Err(AptError::Io(e))
-                    if !matches!(e.kind(), ErrorKind::TimedOut | ErrorKind::WouldBlock) =>
-                {
-                    return Err(AptError::Io(e));
+            match self
+                .io
+                .read_frame()
+                .and_then(|frame| Reply::from_frame(&frame))
+            {
+                Ok(reply) => {
+                    if let Some(channel) = reply.channel().filter(|&c| c != CHANNEL && refuse) {
+                        return Err(AptError::Unexpected(format!(
+                            "{reply:?}: a reply for channel {}, the KDC101 has only channel {}",
+                            channel.0, CHANNEL.0
+                        )));
+                    }
+                    if wanted(&reply) {
+                        return Ok(reply);
+                    }
+                    let unasked = matches!(
+                        reply,
+                        Reply::Status(_) | Reply::MoveStopped(_) | Reply::MoveCompleted(_)
+                    );
+                    if refuse && !unasked {
+                        return Err(AptError::Unexpected(format!("{reply:?} while waiting")));
+                    }
                 }
+                Err(AptError::Io(e))
+                    if matches!(e.kind(), ErrorKind::TimedOut | ErrorKind::WouldBlock) => {}
+                Err(e @ (AptError::Io(_) | AptError::Device { .. })) => return Err(e),
+                Err(e) if refuse => return Err(e),
                 Err(_) => {}
             }
             if Instant::now() >= deadline {
@@ -355,43 +379,15 @@ impl<P: Read + Write> Axis<P> {
             }
         }
     }
+}
 
-    fn read_reply(&mut self, wanted: impl Fn(&Reply) -> bool) -> Result<Reply, AptError> {
-        let deadline = Instant::now() + self.timeout;
-        loop {
-            let frame = match self.io.read_frame() {
-                Ok(frame) => frame,
-                Err(AptError::Io(e))
-                    if matches!(e.kind(), ErrorKind::TimedOut | ErrorKind::WouldBlock) =>
-                {
-                    if Instant::now() >= deadline {
-                        return Err(AptError::Timeout(self.timeout));
-                    }
-                    continue;
-                }
-                Err(e) => return Err(e),
-            };
-            let reply = Reply::from_frame(&frame)?;
-            if let Some(channel) = reply.channel().filter(|&c| c != CHANNEL) {
-                return Err(AptError::Unexpected(format!(
-                    "{reply:?}: a reply for channel {}, the KDC101 has only channel {}",
-                    channel.0, CHANNEL.0
-                )));
-            }
-            if wanted(&reply) {
-                return Ok(reply);
-            }
-            match reply {
-                Reply::Status(_) | Reply::MoveStopped(_) | Reply::MoveCompleted(_) => {}
-                other => {
-                    return Err(AptError::Unexpected(format!("{other:?} while waiting")));
-                }
-            }
-            if Instant::now() >= deadline {
-                return Err(AptError::Timeout(self.timeout));
-            }
-        }
-    }
+/// What [`Axis::read_reply`] does with a message it did not ask for.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum Stray {
+    /// An error: in step, only status messages come unasked.
+    Refuse,
+    /// Discarded, garbled bytes too: getting back in step.
+    Discard,
 }
 
 impl<P: Read + Write> Drop for Axis<P> {

@@ -8,6 +8,7 @@
 //! included), and accept errors (descriptors exhausted) back off instead of
 //! spinning.
 
+use crate::server::current;
 use serde::{Deserialize, Serialize};
 use std::collections::{BTreeMap, HashMap};
 use std::future::Future;
@@ -246,13 +247,7 @@ async fn accept_loop(
         };
         let _ = stream.set_nodelay(true);
         let (id, close) = registry.begin();
-        let acceptor = tls.as_ref().map(|tls| {
-            TlsAcceptor::from(
-                tls.read()
-                    .unwrap_or_else(|poisoned| poisoned.into_inner())
-                    .clone(),
-            )
-        });
+        let acceptor = tls.as_deref().map(|tls| TlsAcceptor::from(current(tls)));
         let (registry, tx) = (registry.clone(), tx.clone());
         tokio::spawn(async move {
             let guard = EndOnDrop(registry.clone(), id);
@@ -283,7 +278,7 @@ async fn accept_loop(
                 last_read_at: Instant::now(),
                 last_read,
                 got_bytes: false,
-                _guard: guard,
+                guard,
             };
             let _ = tx.send(Ok(connection)).await;
         });
@@ -342,7 +337,7 @@ pub(crate) struct Connection {
     /// Until the first bytes arrive, silence is bounded by the handshake
     /// timeout, afterwards by the idle timeout.
     got_bytes: bool,
-    _guard: EndOnDrop,
+    guard: EndOnDrop,
 }
 
 impl Connection {
@@ -352,7 +347,7 @@ impl Connection {
     }
 
     fn registry(&self) -> &Registry {
-        &self._guard.0
+        &self.guard.0
     }
 }
 

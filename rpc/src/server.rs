@@ -25,6 +25,13 @@ use tower::Service;
 /// Tokens that a reload may replace; each call checks the current ones.
 pub(crate) type SharedTokens = Arc<RwLock<Arc<Tokens>>>;
 
+/// Puts `value` behind a reloadable lock, for the next reader.
+fn replace<T: ?Sized>(lock: &RwLock<Arc<T>>, value: Arc<T>) {
+    *lock
+        .write()
+        .unwrap_or_else(|poisoned| poisoned.into_inner()) = value;
+}
+
 /// The current value behind a reloadable lock.
 pub(crate) fn current<T: ?Sized>(lock: &RwLock<Arc<T>>) -> Arc<T> {
     lock.read()
@@ -99,19 +106,12 @@ impl ServerSecurity {
     pub fn reload(&self) -> Result<(), SecurityError> {
         let tokens = Arc::new(self.security.tokens()?);
         let configs = tls_configs(&self.security)?;
-        *self
-            .tokens
-            .write()
-            .unwrap_or_else(|poisoned| poisoned.into_inner()) = tokens.clone();
+        replace(&self.tokens, tokens.clone());
         if let (Some((grpc, metrics)), Some(grpc_tls), Some(metrics_tls)) =
             (configs, &self.grpc_tls, &self.metrics_tls)
         {
-            *grpc_tls
-                .write()
-                .unwrap_or_else(|poisoned| poisoned.into_inner()) = grpc;
-            *metrics_tls
-                .write()
-                .unwrap_or_else(|poisoned| poisoned.into_inner()) = metrics;
+            replace(grpc_tls, grpc);
+            replace(metrics_tls, metrics);
         }
         tracing::info!(tokens = tokens.len(), "reloaded tokens and certificates");
         Ok(())

@@ -20,16 +20,20 @@ fn tweezer(args: &[&str]) -> std::process::Output {
     run("tweezer", &all)
 }
 
+/// A learner of the tiny environment with its run directory in `dir`.
+fn tiny_learner(dir: &std::path::Path) -> (std::process::Child, String) {
+    let config = write(
+        &dir.join("learner.toml"),
+        &format!("{TINY_ENV}\n[learner]\nlisten = \"127.0.0.1:0\"\n"),
+    );
+    let run_dir = dir.join("run");
+    start_learner(&["--config", &config, "--run-dir", run_dir.to_str().unwrap()])
+}
+
 #[test]
 fn the_cli_reads_the_learner_and_drives_the_agent() {
     let dir = tempfile::tempdir().unwrap();
-    let config = write(
-        &dir.path().join("learner.toml"),
-        &format!("{TINY_ENV}\n[learner]\nlisten = \"127.0.0.1:0\"\n"),
-    );
-    let run_dir = dir.path().join("run");
-    let (learner, addr) =
-        start_learner(&["--config", &config, "--run-dir", run_dir.to_str().unwrap()]);
+    let (learner, addr) = tiny_learner(dir.path());
 
     let status = json(&stdout_of(&tweezer(&[
         "--json",
@@ -59,7 +63,7 @@ fn the_cli_reads_the_learner_and_drives_the_agent() {
     ])));
     let checkpoint = std::path::PathBuf::from(written["checkpoint"].as_str().unwrap());
     assert!(
-        checkpoint.starts_with(&run_dir) && checkpoint.is_file(),
+        checkpoint.starts_with(dir.path().join("run")) && checkpoint.is_file(),
         "{written}"
     );
     let resumed = json(&stdout_of(&tweezer(&[
@@ -164,13 +168,7 @@ fn the_cli_reads_the_learner_and_drives_the_agent() {
 #[test]
 fn watching_the_learner_draws_its_trends_under_the_table() {
     let dir = tempfile::tempdir().unwrap();
-    let config = write(
-        &dir.path().join("learner.toml"),
-        &format!("{TINY_ENV}\n[learner]\nlisten = \"127.0.0.1:0\"\n"),
-    );
-    let run_dir = dir.path().join("run");
-    let (learner, addr) =
-        start_learner(&["--config", &config, "--run-dir", run_dir.to_str().unwrap()]);
+    let (learner, addr) = tiny_learner(dir.path());
     let security = credentials().file("read");
     let mut watch = std::process::Command::new(tweezer_system_tests::binary("tweezer"))
         .args(["--security", &security, "learner", "--learner", &addr])
