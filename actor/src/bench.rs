@@ -9,29 +9,38 @@ use tweezer_config::ConfigError;
 use tweezer_gym::{
     Action, Env, EnvConfig, Frame, ImageConfig, Outcome, Policy, Renderer, UniformRandom, VecEnv,
 };
-use tweezer_nets::{ActorConfig, EncoderConfig, NetworkPolicy};
+use tweezer_nets::{Architecture, NetworkPolicy, Networks, PaperNetworks, SetNetworks, SetShape};
 
-/// The networks an actor runs: the paper's resolution and the quick
-/// preset's.
-const NETWORKS: [(&str, [u32; 2]); 2] = [("paper", [320, 256]), ("quick", [40, 32])];
+/// The networks an actor runs: the paper's CNN at its resolution and at the
+/// quick preset's, and the lean preset's set network.
+const NETWORKS: [(&str, Option<[u32; 2]>); 3] = [
+    ("paper", Some([320, 256])),
+    ("quick", Some([40, 32])),
+    ("lean", None),
+];
 /// Environments per actor measured.
-const ACTING_ENVS: [usize; 3] = [1, 8, 32];
+const ACTING_ENVS: [usize; 3] = [1, 16, 32];
 
 /// One actor configuration's speed: environments stepped with the actions
 /// of an untrained network, inferred in one batch per step.
 #[derive(Debug, Serialize)]
 pub struct ActingFigure {
-    /// `paper` or `quick`.
+    /// `paper`, `quick` or `lean`.
     pub network: &'static str,
-    /// Image resolution (width, height).
-    pub resolution: [u32; 2],
+    /// The architecture with its hyper-parameters.
+    pub architecture: String,
     /// Environments stepped together.
     pub envs: usize,
     /// Environment steps per second, inference included.
     pub actor_steps_per_sec: f64,
     /// Share of the time spent in inference (rendering the batch's images
-    /// included); the rest steps the environments.
+    /// or building its sets included); the rest steps the environments.
     pub inference_share: f64,
+    /// Mean time of one inference on the first observation of an
+    /// environment, input included, ms (the same for every `envs`).
+    pub actor_infer_ms_batch1: f64,
+    /// The same for 16 environments.
+    pub actor_infer_ms_batch16: f64,
 }
 
 /// Benchmark figures; rates are medians over repetitions.
@@ -168,40 +177,71 @@ fn render_times(config: &EnvConfig, renderer: &Renderer) -> Result<(f64, f64), C
     Ok((median(full), median(incremental)))
 }
 
-/// Steps per second of `envs` environments driven by an untrained `network`
-/// over about `span`, and the share of the time inference took.
+/// Steps per second of each count of environments driven by an untrained
+/// `network` over about `span`, and the share of the time inference took.
 fn acting(
     config: &EnvConfig,
-    network: (&'static str, [u32; 2]),
-    envs: usize,
+    network: (&'static str, Option<[u32; 2]>),
     span: Duration,
-) -> Result<ActingFigure, ConfigError> {
-    let (name, [width, height]) = network;
+) -> Result<Vec<ActingFigure>, ConfigError> {
+    let (name, image) = network;
     let mut config = config.clone();
-    config.image = ImageConfig { width, height };
     let device = Device::flex();
-    let actor = ActorConfig::new(EncoderConfig::new(height as usize, width as usize)).init(&device);
-    let mut policy = NetworkPolicy::new(actor, Renderer::for_config(&config)?, device);
-    let mut vec_env = VecEnv::new(&config, envs, 7)?;
-    let mut actions = vec![Action::ZERO; envs];
-    let mut inference = Duration::ZERO;
-    let mut steps = 0u64;
-    let start = Instant::now();
-    while start.elapsed() < span || steps == 0 {
-        let t = Instant::now();
-        policy.act(&vec_env.observations(), &mut actions);
-        inference += t.elapsed();
-        vec_env.step(&actions).expect("one action per environment");
-        steps += envs as u64;
+    fn untrained<N: Networks>(networks: N, device: &Device) -> (Architecture, NetworkPolicy) {
+        let actor = networks.actor(device);
+        (
+            networks.architecture(),
+            NetworkPolicy::new(networks, actor, device.clone()),
+        )
     }
-    let elapsed = start.elapsed().as_secs_f64();
-    Ok(ActingFigure {
-        network: name,
-        resolution: [width, height],
-        envs,
-        actor_steps_per_sec: steps as f64 / elapsed,
-        inference_share: inference.as_secs_f64() / elapsed,
-    })
+    let (architecture, mut policy) = match image {
+        Some([width, height]) => {
+            config.image = ImageConfig { width, height };
+            untrained(PaperNetworks::new(Renderer::for_config(&config)?), &device)
+        }
+        None => {
+            let shape = SetShape::new(config.fov_px);
+            untrained(SetNetworks::new(shape, config.fov_px), &device)
+        }
+    };
+    let mut infer = |n: usize| -> Result<f64, ConfigError> {
+        let vec_env = VecEnv::new(&config, n, 11)?;
+        let mut actions = vec![Action::ZERO; n];
+        policy.act(&vec_env.observations(), &mut actions);
+        let reps = 10;
+        let t = Instant::now();
+        for _ in 0..reps {
+            policy.act(&vec_env.observations(), &mut actions);
+        }
+        Ok(t.elapsed().as_secs_f64() * 1e3 / reps as f64)
+    };
+    let (actor_infer_ms_batch1, actor_infer_ms_batch16) = (infer(1)?, infer(16)?);
+    let mut figures = Vec::new();
+    for envs in ACTING_ENVS {
+        let mut vec_env = VecEnv::new(&config, envs, 7)?;
+        let mut actions = vec![Action::ZERO; envs];
+        let mut inference = Duration::ZERO;
+        let mut steps = 0u64;
+        let start = Instant::now();
+        while start.elapsed() < span || steps == 0 {
+            let t = Instant::now();
+            policy.act(&vec_env.observations(), &mut actions);
+            inference += t.elapsed();
+            vec_env.step(&actions).expect("one action per environment");
+            steps += envs as u64;
+        }
+        let elapsed = start.elapsed().as_secs_f64();
+        figures.push(ActingFigure {
+            network: name,
+            architecture: architecture.to_string(),
+            envs,
+            actor_steps_per_sec: steps as f64 / elapsed,
+            inference_share: inference.as_secs_f64() / elapsed,
+            actor_infer_ms_batch1,
+            actor_infer_ms_batch16,
+        });
+    }
+    Ok(figures)
 }
 
 /// Runs every benchmark, each rate `repetitions` times for about `span`.
@@ -221,11 +261,10 @@ pub fn run(
         .map(|r| all_cores(config, &renderer, vec_envs, span, r as u64))
         .collect::<Result<_, _>>()?;
     let (render_us_median, render_incremental_us_median) = render_times(config, &renderer)?;
-    let acting = NETWORKS
-        .iter()
-        .flat_map(|&network| ACTING_ENVS.map(|envs| (network, envs)))
-        .map(|(network, envs)| acting(config, network, envs, span))
-        .collect::<Result<_, _>>()?;
+    let mut figures = Vec::new();
+    for network in NETWORKS {
+        figures.extend(acting(config, network, span)?);
+    }
     Ok(BenchReport {
         env_steps_per_sec_1core: median(single),
         env_steps_per_sec_all_cores: median(parallel),
@@ -235,7 +274,7 @@ pub fn run(
         vec_envs,
         resolution: [config.image.width, config.image.height],
         repetitions,
-        acting,
+        acting: figures,
     })
 }
 
@@ -256,10 +295,11 @@ mod tests {
         assert!(report.env_steps_per_sec_all_cores > 0.0);
         assert!(report.render_us_median > 0.0);
         assert_eq!(report.resolution, [320, 256]);
-        assert_eq!(report.acting.len(), 6);
+        assert_eq!(report.acting.len(), 9);
         for figure in &report.acting {
             assert!(figure.actor_steps_per_sec > 0.0, "{figure:?}");
             assert!((0.0..=1.0).contains(&figure.inference_share), "{figure:?}");
+            assert!(figure.actor_infer_ms_batch16 > 0.0, "{figure:?}");
         }
     }
 }

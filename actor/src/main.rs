@@ -210,14 +210,18 @@ fn main() -> anyhow::Result<()> {
                 );
                 for a in &report.acting {
                     println!(
-                        "acting, {} net {}x{}, {:>2} envs  {:.0} steps/s ({:.0} % inference)",
+                        "acting, {:<5} net, {:>2} envs  {:>8.0} steps/s ({:.0} % inference; infer b1 {:.3} ms, b16 {:.3} ms)",
                         a.network,
-                        a.resolution[0],
-                        a.resolution[1],
                         a.envs,
                         a.actor_steps_per_sec,
-                        100.0 * a.inference_share
+                        100.0 * a.inference_share,
+                        a.actor_infer_ms_batch1,
+                        a.actor_infer_ms_batch16
                     );
+                }
+                let mut seen = std::collections::BTreeSet::new();
+                for a in report.acting.iter().filter(|a| seen.insert(a.network)) {
+                    println!("  {}: {}", a.network, a.architecture);
                 }
             }
         }

@@ -20,7 +20,7 @@ use std::sync::mpsc;
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 use tokio::runtime::Runtime;
-use tweezer_gym::{Action, Outcome, Policy, Renderer, SplitMix64, UniformRandom, VecEnv};
+use tweezer_gym::{Action, Outcome, Policy, SplitMix64, UniformRandom, VecEnv};
 use tweezer_nets::NetworkPolicy;
 use tweezer_process::stop_signal;
 use tweezer_proto::pb::learner_client::LearnerClient;
@@ -523,9 +523,8 @@ impl Actor {
             }
             Err(e) => return Err(Broken::Link(e.to_string())),
         };
-        let renderer = Renderer::for_config(&self.file.env).map_err(|e| Broken::Fatal(e.into()))?;
-        let (policy, _) =
-            NetworkPolicy::from_snapshot(&bytes, renderer, &Device::flex()).map_err(|e| {
+        let (policy, _) = NetworkPolicy::from_snapshot(&bytes, &self.file.env, &Device::flex())
+            .map_err(|e| {
                 Broken::Fatal(anyhow::anyhow!(
                     "snapshot version {} from the learner cannot be used: {e}",
                     info.version

@@ -99,6 +99,7 @@ pub fn snapshot(info: &pb::SnapshotInfo) -> Fields {
         ("sha256", json!(info.sha256)),
         ("architecture", json!(info.architecture)),
         ("image", json!([info.image_width, info.image_height])),
+        ("network", json!(info.network)),
     ]
 }
 

@@ -7,8 +7,8 @@ use burn::tensor::Device;
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
 use std::time::Duration;
-use tweezer_gym::{EnvConfig, Greedy, Policy, Renderer};
-use tweezer_nets::{NetworkPolicy, SnapshotInfo, file_sha256};
+use tweezer_gym::{EnvConfig, Greedy, Policy};
+use tweezer_nets::{LoadError, NetworkPolicy, SnapshotInfo, file_sha256};
 use tweezer_proto::pb::learner_client::LearnerClient;
 use tweezer_proto::pb::snapshot_request::Selector;
 use tweezer_proto::{download_snapshot, pb};
@@ -308,15 +308,17 @@ impl LoadedPolicy {
     }
 
     fn from_bytes(bytes: &[u8], env: &EnvConfig, origin: &str) -> Result<Self, PolicyError> {
-        let renderer = Renderer::for_config(env).map_err(|e| PolicyError::Config(e.to_string()))?;
         let (policy, info): (NetworkPolicy, SnapshotInfo) =
-            NetworkPolicy::from_snapshot(bytes, renderer, &Device::flex())
-                .map_err(|e| PolicyError::Refused(format!("{origin}: {e}")))?;
+            NetworkPolicy::from_snapshot(bytes, env, &Device::flex()).map_err(|e| match e {
+                LoadError::Config(e) => PolicyError::Config(e.to_string()),
+                LoadError::Snapshot(e) => PolicyError::Refused(format!("{origin}: {e}")),
+            })?;
         Ok(Self {
             policy: Box::new(policy),
             version: info.version,
             description: format!(
-                "{origin} (v{}, step {}, sha256 {})",
+                "{origin} ({}, v{}, step {}, sha256 {})",
+                info.architecture.name(),
                 info.version,
                 info.training_step,
                 &file_sha256(bytes)[..12]

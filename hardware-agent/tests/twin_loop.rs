@@ -6,7 +6,7 @@ use burn::tensor::Device;
 use serde_json::Value;
 use std::path::Path;
 use std::process::Command;
-use tweezer_nets::{ARCHITECTURE, ActorConfig, EncoderConfig, SnapshotInfo, encode};
+use tweezer_nets::{ActorConfig, Architecture, EncoderConfig, SnapshotInfo, encode};
 
 /// The `[control]` table of every config here: a step may start up to a
 /// second late. These tests drive the twin on a shared, possibly loaded
@@ -108,9 +108,7 @@ fn a_snapshot_drives_the_twin_and_a_mismatched_one_is_refused() {
     let device = Device::flex();
     let actor = ActorConfig::new(EncoderConfig::new(32, 40)).init(&device);
     let info = |height, width| SnapshotInfo {
-        architecture: ARCHITECTURE.into(),
-        height,
-        width,
+        architecture: Architecture::Paper { height, width },
         version: 17,
         training_step: 99,
     };

@@ -1,12 +1,13 @@
 //! `learner bench`: how fast the learner's parts run on this machine.
 
+use crate::config::NetworkConfig;
 use crate::learner_state::LearnerState;
 use crate::loopback::batches;
 use crate::minibatch::minibatch_tensors;
 use crate::replay::{Replay, ReplayConfig};
 use crate::service::LearnerService;
 use crate::td3::{Td3, Td3Config};
-use burn::tensor::{Device, Distribution, Tensor};
+use burn::tensor::Device;
 use serde::Serialize;
 use std::path::Path;
 use std::sync::Arc;
@@ -14,6 +15,7 @@ use std::time::{Duration, Instant};
 use tokio::net::TcpListener;
 use tweezer_config::ConfigError;
 use tweezer_gym::{EnvConfig, RandomSteps, Renderer, SplitMix64, StepBounds};
+use tweezer_nets::{Architecture, Networks, PaperNetworks, SetNetworks};
 use tweezer_proto::pb;
 use tweezer_proto::pb::learner_client::LearnerClient;
 use tweezer_rpc::{ClientSecurity, LoopbackCredentials, Security, ServerSecurity};
@@ -21,7 +23,10 @@ use tweezer_rpc::{ClientSecurity, LoopbackCredentials, Security, ServerSecurity}
 /// Benchmark figures. Times are means over the timed repetitions.
 #[derive(Debug, Serialize)]
 pub struct LearnerBench {
-    /// One full TD3 update at `batch_size`: sampling, rendering, the critic
+    /// The networks timed, with their hyper-parameters.
+    pub architecture: String,
+    /// One full TD3 update at `batch_size`: sampling, the inputs (images
+    /// rendered or sets built), the critic
     /// step, and the actor step with soft updates every second update;
     /// averaged over an even number of consecutive updates.
     pub update_ms_mean: f64,
@@ -38,7 +43,7 @@ pub struct LearnerBench {
     pub replay_bytes_per_transition: f64,
     /// Capacity of that replay.
     pub replay_capacity: usize,
-    /// Image resolution (width, height).
+    /// Image resolution (width, height) of the environment.
     pub resolution: [u32; 2],
     /// Transitions per update (`learner.batch_size`).
     pub batch_size: usize,
@@ -50,6 +55,69 @@ pub struct LearnerBench {
     pub ingest_transitions_per_sec: f64,
     /// The same over plain TCP (tokens still checked).
     pub ingest_plaintext_transitions_per_sec: f64,
+}
+
+/// The networks' share of the figures.
+struct NetworkTimes {
+    update_ms_mean: f64,
+    critic_step_ms: f64,
+    actor_step_ms: f64,
+    actor_infer_ms_batch1: f64,
+    actor_infer_ms_batch16: f64,
+    updates_timed: usize,
+}
+
+/// Times TD3 updates and inference of `networks` on batches of `replay`.
+fn time_networks<N: Networks>(
+    networks: N,
+    replay: &Replay,
+    batch_size: usize,
+    updates: usize,
+    device: &Device,
+) -> anyhow::Result<NetworkTimes> {
+    let training = device.clone().autodiff();
+    let mut td3 = Td3::new(Td3Config::default(), networks.clone(), &training)?;
+    let mut rng = SplitMix64::new(7);
+    let mut sample = |n: usize, on: &Device| {
+        let sampled = replay.sample(n, &mut rng).expect("the replay is full");
+        minibatch_tensors(&sampled, &networks, on)
+    };
+    // Two warm-up updates, then `updates` timed ones, each step timed on
+    // its own; sampling and building the inputs count.
+    td3.update(sample(batch_size, &training));
+    td3.update(sample(batch_size, &training));
+    let updates = updates.max(2).next_multiple_of(2);
+    let (mut critic, mut actor) = (Vec::new(), Vec::new());
+    let started = Instant::now();
+    for _ in 0..updates {
+        let batch = sample(batch_size, &training);
+        let step = Instant::now();
+        td3.critic_step(&batch);
+        critic.push(step.elapsed().as_secs_f64() * 1e3);
+        if td3.actor_due() {
+            let step = Instant::now();
+            td3.actor_step(batch);
+            actor.push(step.elapsed().as_secs_f64() * 1e3);
+        }
+    }
+    let update_ms_mean = started.elapsed().as_secs_f64() * 1e3 / updates as f64;
+
+    let policy = td3.policy();
+    let mut infer = |n: usize| {
+        let batch = sample(n, device);
+        time_ms(10, || {
+            let action = N::act(&policy, batch.input.clone(), batch.vector.clone());
+            std::hint::black_box(action.into_data());
+        })
+    };
+    Ok(NetworkTimes {
+        update_ms_mean,
+        critic_step_ms: mean(&critic),
+        actor_step_ms: mean(&actor),
+        actor_infer_ms_batch1: infer(1),
+        actor_infer_ms_batch16: infer(16),
+        updates_timed: updates,
+    })
 }
 
 fn mean(v: &[f64]) -> f64 {
@@ -137,56 +205,32 @@ fn time_ms(reps: usize, mut f: impl FnMut()) -> f64 {
 }
 
 /// Runs every benchmark: `updates` (rounded up to even) timed TD3 updates
-/// after two warm-up updates, on a replay of `capacity` transitions.
+/// of the networks `network` configures, after two warm-up updates, on a
+/// replay of `capacity` transitions.
 pub fn run(
     env: &EnvConfig,
+    network: &NetworkConfig,
     batch_size: usize,
     capacity: usize,
     updates: usize,
     device: &Device,
 ) -> anyhow::Result<LearnerBench> {
-    let renderer = Renderer::for_config(env)?;
-    let (h, w) = (renderer.height(), renderer.width());
     let replay = filled_replay(env, capacity)?;
-    let replay_bytes_per_transition = replay.bytes() as f64 / replay.len() as f64;
-
-    let training = device.clone().autodiff();
-    let mut td3 = Td3::new(Td3Config::default(), h, w, &training)?;
-    let mut rng = SplitMix64::new(7);
-    let mut sample = || {
-        let sampled = replay
-            .sample(batch_size, &mut rng)
-            .expect("the replay is full");
-        minibatch_tensors(&sampled, &renderer, &training)
-    };
-    // Two warm-up updates, then `updates` timed ones, each step timed on
-    // its own.
-    td3.update(sample());
-    td3.update(sample());
-    let updates = updates.max(2).next_multiple_of(2);
-    let (mut critic, mut actor) = (Vec::new(), Vec::new());
-    let started = Instant::now();
-    for _ in 0..updates {
-        let batch = sample();
-        let step = Instant::now();
-        td3.critic_step(&batch);
-        critic.push(step.elapsed().as_secs_f64() * 1e3);
-        if td3.actor_due() {
-            let step = Instant::now();
-            td3.actor_step(batch);
-            actor.push(step.elapsed().as_secs_f64() * 1e3);
-        }
-    }
-    let update_ms_mean = started.elapsed().as_secs_f64() * 1e3 / updates as f64;
-
-    let policy = td3.policy();
-    let infer = |batch: usize| {
-        let image = Tensor::<4>::random([batch, 1, h, w], Distribution::Bernoulli(0.05), device);
-        let vector = Tensor::<2>::random([batch, 2], Distribution::Uniform(-1.0, 1.0), device);
-        time_ms(10, || {
-            let action = policy.forward(image.clone(), vector.clone());
-            std::hint::black_box(action.into_data());
-        })
+    let networks = match network.architecture(env) {
+        Architecture::Paper { .. } => time_networks(
+            PaperNetworks::new(Renderer::for_config(env)?),
+            &replay,
+            batch_size,
+            updates,
+            device,
+        )?,
+        Architecture::Set(shape) => time_networks(
+            SetNetworks::new(shape, env.fov_px),
+            &replay,
+            batch_size,
+            updates,
+            device,
+        )?,
     };
     // The ingest runs secured as deployed: the run's credentials, and
     // plaintext files beside them.
@@ -201,16 +245,17 @@ pub fn run(
         "plaintext = true\ntoken_file = \"actor.token\"\n",
     )?;
     Ok(LearnerBench {
-        update_ms_mean,
-        critic_step_ms: mean(&critic),
-        actor_step_ms: mean(&actor),
-        actor_infer_ms_batch1: infer(1),
-        actor_infer_ms_batch16: infer(16),
-        replay_bytes_per_transition,
+        architecture: network.architecture(env).to_string(),
+        update_ms_mean: networks.update_ms_mean,
+        critic_step_ms: networks.critic_step_ms,
+        actor_step_ms: networks.actor_step_ms,
+        actor_infer_ms_batch1: networks.actor_infer_ms_batch1,
+        actor_infer_ms_batch16: networks.actor_infer_ms_batch16,
+        replay_bytes_per_transition: replay.bytes() as f64 / replay.len() as f64,
         replay_capacity: capacity,
         resolution: [env.image.width, env.image.height],
         batch_size,
-        updates_timed: updates,
+        updates_timed: networks.updates_timed,
         ingest_transitions_per_sec: ingest_rate(env, &credentials.learner, &credentials.actor)?,
         ingest_plaintext_transitions_per_sec: ingest_rate(env, &plain_server, &plain_client)?,
     })

@@ -22,6 +22,7 @@ use std::collections::{BTreeMap, BTreeSet};
 use std::io::{self, Read, Write};
 use std::ops::Range;
 use std::path::{Path, PathBuf};
+use tweezer_nets::Architecture;
 
 const MAGIC: &[u8; 8] = b"TWZCKPT1";
 const EXTENSION: &str = "twz";
@@ -35,8 +36,12 @@ pub struct CheckpointHeader {
     pub steps_inserted: u64,
     /// Replay sampler state ([`tweezer_gym::SplitMix64::state`]).
     pub sampler_state: u64,
-    /// Image resolution the networks take: (height, width).
+    /// Image resolution the CNNs take: (height, width); zeros for sets.
+    /// Checkpoints without `architecture` hold the paper's CNNs.
     pub resolution: [usize; 2],
+    /// The networks trained.
+    #[serde(default)]
+    pub architecture: Option<Architecture>,
     /// Finished episodes and the rolling window.
     pub episodes: Episodes,
     /// Published snapshots.
@@ -47,6 +52,16 @@ pub struct CheckpointHeader {
     pub sessions: Vec<SessionState>,
     /// Names and lengths of the binary parts, in file order.
     pub parts: Vec<(String, u64)>,
+}
+
+impl CheckpointHeader {
+    /// The networks the checkpoint holds.
+    pub fn architecture(&self) -> Architecture {
+        self.architecture.unwrap_or(Architecture::Paper {
+            height: self.resolution[0],
+            width: self.resolution[1],
+        })
+    }
 }
 
 /// What a checkpoint keeps of an actor session: enough to recognise its

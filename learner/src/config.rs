@@ -10,6 +10,7 @@ use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
 use tweezer_config::{ConfigError, read_toml};
 use tweezer_gym::EnvConfig;
+use tweezer_nets::{Architecture, Pooling, SetShape};
 
 /// The whole file.
 #[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
@@ -57,6 +58,8 @@ pub struct LearnerConfig {
     pub run_dir: PathBuf,
     /// Where the networks train.
     pub device: DeviceChoice,
+    /// Which networks train.
+    pub network: NetworkConfig,
     /// Seed of the replay sampler and of the networks' initial weights.
     pub seed: u64,
     /// Transitions per update (`docs/spec.md` §4: 32).
@@ -94,6 +97,7 @@ impl Default for LearnerConfig {
             metrics_listen: None,
             run_dir: PathBuf::from("runs/learner"),
             device: DeviceChoice::Flex,
+            network: NetworkConfig::Paper,
             seed: 0,
             batch_size: 32,
             uniform_steps: 10_000,
@@ -150,9 +154,82 @@ impl LearnerConfig {
                 "must be between 1 MiB (1048576) and 1 GiB (1073741824)",
             );
         }
+        self.network.validate()?;
         self.td3.validate()?;
         self.limiter.validate()?;
         self.device.device().map(|_| ())
+    }
+}
+
+/// The `[learner.network]` table: the paper's CNN (the default) or the
+/// set network that reads sphere centres.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "kind", rename_all = "snake_case")]
+pub enum NetworkConfig {
+    /// The paper's CNN on images of `env.image`'s resolution.
+    Paper,
+    /// The set network on the centres of `env.fov_px`.
+    Set(SetNetworkConfig),
+}
+
+/// The set network's hyper-parameters.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct SetNetworkConfig {
+    /// Width of the per-sphere MLP's two layers.
+    pub sphere_hidden: usize,
+    /// Width of the two layers after pooling.
+    pub head_hidden: usize,
+    /// `max_mean`, `max` or `mean`.
+    pub pooling: Pooling,
+    /// Most spheres a set holds; a scene with more keeps the nearest.
+    pub max_spheres: usize,
+}
+
+impl Default for SetNetworkConfig {
+    /// [`SetShape::new`]'s.
+    fn default() -> Self {
+        let shape = SetShape::new([1, 1]);
+        Self {
+            sphere_hidden: shape.sphere_hidden,
+            head_hidden: shape.head_hidden,
+            pooling: shape.pooling,
+            max_spheres: shape.max_spheres,
+        }
+    }
+}
+
+impl NetworkConfig {
+    /// The architecture this config trains for `env`.
+    pub fn architecture(&self, env: &EnvConfig) -> Architecture {
+        match self {
+            Self::Paper => Architecture::Paper {
+                height: env.image.height as usize,
+                width: env.image.width as usize,
+            },
+            Self::Set(s) => Architecture::Set(SetShape {
+                sphere_hidden: s.sphere_hidden,
+                head_hidden: s.head_hidden,
+                pooling: s.pooling,
+                max_spheres: s.max_spheres,
+                fov_px: env.fov_px,
+            }),
+        }
+    }
+
+    /// Checks the set network's sizes.
+    pub fn validate(&self) -> Result<(), ConfigError> {
+        let Self::Set(s) = self else { return Ok(()) };
+        for (field, value) in [
+            ("network.sphere_hidden", s.sphere_hidden),
+            ("network.head_hidden", s.head_hidden),
+            ("network.max_spheres", s.max_spheres),
+        ] {
+            if !(1..=4096).contains(&value) {
+                return Err(ConfigError::invalid(field, "must lie in [1, 4096]"));
+            }
+        }
+        Ok(())
     }
 }
 

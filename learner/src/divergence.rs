@@ -6,6 +6,7 @@
 //! or Slurm's auto-resume an exit would only start a crash loop.
 
 use crate::td3::{Td3, UpdateStats};
+use tweezer_nets::Networks;
 
 /// Finite updates in a row after which the networks become the copy to
 /// roll back to.
@@ -32,15 +33,15 @@ pub enum Verdict {
 }
 
 /// The copy of the networks to roll back to, and how recent updates went.
-pub struct DivergenceGuard {
-    good: Td3,
+pub struct DivergenceGuard<N: Networks> {
+    good: Td3<N>,
     finite_in_a_row: u64,
     rollbacks: u32,
 }
 
-impl DivergenceGuard {
+impl<N: Networks> DivergenceGuard<N> {
     /// Starts with `td3` as it is as the copy to roll back to.
-    pub fn new(td3: &Td3) -> Self {
+    pub fn new(td3: &Td3<N>) -> Self {
         Self {
             good: td3.clone(),
             finite_in_a_row: 0,
@@ -50,7 +51,7 @@ impl DivergenceGuard {
 
     /// Judges the update that produced `stats`, rolling `td3` back when it
     /// diverged.
-    pub fn check(&mut self, td3: &mut Td3, stats: &UpdateStats) -> Verdict {
+    pub fn check(&mut self, td3: &mut Td3<N>, stats: &UpdateStats) -> Verdict {
         let finite = stats.critic_loss.is_finite()
             && stats.mean_q.is_finite()
             && stats.actor_loss.is_none_or(f64::is_finite);

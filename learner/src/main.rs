@@ -64,6 +64,9 @@ enum Command {
         /// TD3 updates timed (rounded up to an even number).
         #[arg(long, default_value_t = 4)]
         updates: usize,
+        /// Transitions per update instead of `learner.batch_size`.
+        #[arg(long)]
+        batch_size: Option<usize>,
         /// Replay capacity filled to measure bytes per transition.
         #[arg(long, default_value_t = 1_050_000)]
         replay_capacity: usize,
@@ -117,6 +120,7 @@ fn main() -> anyhow::Result<()> {
         Command::Config => print!("{}", LearnerFile::load(cli.config.as_deref())?.to_toml()),
         Command::Bench {
             updates,
+            batch_size,
             replay_capacity,
             json,
         } => {
@@ -126,7 +130,8 @@ fn main() -> anyhow::Result<()> {
             let config = LearnerFile::load(cli.config.as_deref())?;
             let report = tweezer_learner::bench::run(
                 &config.env,
-                config.learner.batch_size,
+                &config.learner.network,
+                batch_size.unwrap_or(config.learner.batch_size),
                 replay_capacity,
                 updates,
                 &Device::flex(),
@@ -134,12 +139,13 @@ fn main() -> anyhow::Result<()> {
             if json {
                 println!("{}", serde_json::to_string(&report)?);
             } else {
+                println!("networks                 {}", report.architecture);
                 println!(
-                    "TD3 update, batch {:<6}  {:.0} ms",
+                    "TD3 update, batch {:<6}  {:.2} ms",
                     report.batch_size, report.update_ms_mean
                 );
-                println!("  critic step            {:.0} ms", report.critic_step_ms);
-                println!("  actor step             {:.0} ms", report.actor_step_ms);
+                println!("  critic step            {:.2} ms", report.critic_step_ms);
+                println!("  actor step             {:.2} ms", report.actor_step_ms);
                 println!(
                     "actor inference, b1      {:.1} ms",
                     report.actor_infer_ms_batch1

@@ -16,7 +16,7 @@ use crate::run_dir::RunDir;
 use crate::run_log::RunLog;
 use crate::service::LearnerService;
 use crate::snapshots::Snapshots;
-use crate::trainer::Trainer;
+use crate::trainer::training;
 use anyhow::{Context, bail};
 use std::sync::Arc;
 use tokio::net::TcpListener;
@@ -75,7 +75,7 @@ pub fn serve(file: LearnerFile, start: Start, security: &Security) -> anyhow::Re
         snapshots.pin(needed);
     }
     let device = config.device.device()?;
-    let mut trainer = Trainer::new(
+    let mut trainer = training(
         &file,
         shared.clone(),
         checkpoints,

@@ -387,13 +387,15 @@ fn actor_to_wire(actor: ActorSummary) -> pb::ActorStatus {
 
 /// A published snapshot's metadata on the wire.
 fn info_to_wire(published: &Published) -> pb::SnapshotInfo {
+    let image = published.info.architecture.image();
     pb::SnapshotInfo {
         version: published.info.version,
         training_step: published.info.training_step,
         size_bytes: published.bytes.len() as u64,
         sha256: published.sha256.clone(),
-        architecture: published.info.architecture.clone(),
-        image_width: published.info.width as u32,
-        image_height: published.info.height as u32,
+        architecture: published.info.architecture.name().to_string(),
+        image_width: image.map_or(0, |(_, w)| w as u32),
+        image_height: image.map_or(0, |(h, _)| h as u32),
+        network: published.info.architecture.to_string(),
     }
 }

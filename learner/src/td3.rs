@@ -1,5 +1,5 @@
-//! TD3 (Fujimoto, van Hoof and Meger, 2018), in the order of the paper's
-//! pseudo-code: target actions with clipped noise, the smaller of the twin
+//! TD3 (Fujimoto, van Hoof and Meger, 2018) for either architecture
+//! ([`Networks`]), in the order of the paper's pseudo-code: target actions with clipped noise, the smaller of the twin
 //! target critics, the critic loss; every `policy_delay` updates the actor
 //! loss and the soft target updates. Targets run without autodiff, so their
 //! BatchNorm layers use running statistics.
@@ -9,7 +9,7 @@
 //! - `reward_scale`: rewards are scaled before the TD target (the optimal
 //!   policy is unchanged);
 //! - `action_l2`: a penalty on the mean squared action in the actor's loss;
-//! - the actor's loss reads Q1's image features detached: they do not
+//! - the actor's loss reads Q1's encoder features detached: they do not
 //!   depend on π, so the backward pass skips Q1's encoder;
 //! - Adam's epsilon is PyTorch's 1e-8, not Burn's 1e-5.
 //!
@@ -18,20 +18,21 @@
 //! (`replay`), the update-to-data ratio in the rate limiter (`limiter`), and
 //! the training thread that ties them together (`trainer`).
 
-use burn::module::{Module, ModuleMapper, ModuleVisitor, Param};
+use burn::module::{Module, ModuleDisplay, ModuleMapper, ModuleVisitor, Param};
 use burn::nn::loss::{MseLoss, Reduction};
 use burn::optim::{AdamConfig, GradientsParams, ModuleOptimizer, OptimizerRecord};
 use burn::store::{ModuleRecord, RecordError};
 use burn::tensor::{Bytes, Device, Distribution, Tensor};
 use serde::{Deserialize, Serialize};
 use tweezer_config::ConfigError;
-use tweezer_nets::{Actor, ActorConfig, Critic, CriticConfig, EncoderConfig};
+use tweezer_nets::Networks;
 
-/// A batch of transitions as tensors, on the training device.
+/// A batch of transitions as tensors, on the training device; `I` is the
+/// networks' input (images or sphere sets).
 #[derive(Clone, Debug)]
-pub struct Minibatch {
-    /// `[batch, 1, height, width]` binary images.
-    pub image: Tensor<4>,
+pub struct Minibatch<I> {
+    /// What the networks read of the observations.
+    pub input: I,
     /// `[batch, 2]` target vectors.
     pub vector: Tensor<2>,
     /// `[batch, 2]` actions taken.
@@ -40,8 +41,8 @@ pub struct Minibatch {
     pub reward: Tensor<2>,
     /// `[batch, 1]`: 1 where the episode terminated (no bootstrap).
     pub terminated: Tensor<2>,
-    /// `[batch, 1, height, width]` next images.
-    pub next_image: Tensor<4>,
+    /// What the networks read of the next observations.
+    pub next_input: I,
     /// `[batch, 2]` next target vectors.
     pub next_vector: Tensor<2>,
 }
@@ -68,28 +69,29 @@ pub struct CriticStats {
 
 /// The two critics, trained together by one optimiser.
 #[derive(Module, Debug)]
-pub struct TwinCritic {
-    q1: Critic,
-    q2: Critic,
+pub struct TwinCritic<C: Module + ModuleDisplay> {
+    q1: C,
+    q2: C,
 }
 
 /// The learner's networks, their targets and optimisers.
 #[derive(Clone)]
-pub struct Td3 {
+pub struct Td3<N: Networks> {
     config: Td3Config,
-    actor: Actor,
-    critics: TwinCritic,
-    actor_target: Actor,
-    critics_target: TwinCritic,
+    networks: N,
+    actor: N::Actor,
+    critics: TwinCritic<N::Critic>,
+    actor_target: N::Actor,
+    critics_target: TwinCritic<N::Critic>,
     actor_optim: ModuleOptimizer,
     critic_optim: ModuleOptimizer,
     updates: u64,
 }
 
-impl Td3 {
+impl<N: Networks> Td3<N> {
     /// One TD3 update on `batch`: a critic step, then the actor step when
     /// it is due.
-    pub fn update(&mut self, batch: Minibatch) -> UpdateStats {
+    pub fn update(&mut self, batch: Minibatch<N::Input>) -> UpdateStats {
         let critic = self.critic_step(&batch);
         let actor_loss = self.actor_due().then(|| self.actor_step(batch));
         UpdateStats {
@@ -100,24 +102,22 @@ impl Td3 {
     }
 
     /// The critics' step: targets, the critic loss, backward, Adam.
-    pub fn critic_step(&mut self, batch: &Minibatch) -> CriticStats {
+    pub fn critic_step(&mut self, batch: &Minibatch<N::Input>) -> CriticStats {
         let c = &self.config;
         let Minibatch {
-            image,
+            input,
             vector,
             action,
             reward,
             terminated,
-            next_image,
+            next_input,
             next_vector,
         } = batch.clone();
 
         // Target policy smoothing: a' = clip(π'(s') + clip(ε, -c, c), -1, 1).
-        let target_device = next_image.device();
-        let (next_image, next_vector) = (next_image.valid(), next_vector.valid());
-        let next_action = self
-            .actor_target
-            .forward(next_image.clone(), next_vector.clone());
+        let target_device = next_vector.device();
+        let (next_input, next_vector) = (N::valid(next_input), next_vector.valid());
+        let next_action = N::act(&self.actor_target, next_input.clone(), next_vector.clone());
         let noise = Tensor::<2>::random(
             next_action.shape(),
             Distribution::Normal(0.0, c.policy_noise),
@@ -127,15 +127,17 @@ impl Td3 {
 
         // Clipped double Q: y = r + γ (1 - terminated) min(Q1'(s', a'), Q2'(s',
         // a')).
-        let q1_next = self.critics_target.q1.forward(
-            next_image.clone(),
+        let q = |critic: &N::Critic, input, vector, action| {
+            N::value(critic, N::features(critic, input), vector, action)
+        };
+        let targets = &self.critics_target;
+        let q1_next = q(
+            &targets.q1,
+            next_input.clone(),
             next_vector.clone(),
             next_action.clone(),
         );
-        let q2_next = self
-            .critics_target
-            .q2
-            .forward(next_image, next_vector, next_action);
+        let q2_next = q(&targets.q2, next_input, next_vector, next_action);
         let y = td_target(
             reward.valid() * c.reward_scale,
             terminated.valid(),
@@ -146,11 +148,13 @@ impl Td3 {
         let y = Tensor::from_inner(y).to_device(&target_device);
 
         // Critic loss: MSE(Q1(s, a), y) + MSE(Q2(s, a), y).
-        let q1 = self
-            .critics
-            .q1
-            .forward(image.clone(), vector.clone(), action.clone());
-        let q2 = self.critics.q2.forward(image, vector, action);
+        let q1 = q(
+            &self.critics.q1,
+            input.clone(),
+            vector.clone(),
+            action.clone(),
+        );
+        let q2 = q(&self.critics.q2, input, vector, action);
         let mse = MseLoss::new();
         let critic_loss = mse.forward(q1.clone(), y.clone(), Reduction::Mean)
             + mse.forward(q2, y, Reduction::Mean);
@@ -174,17 +178,17 @@ impl Td3 {
 
     /// The delayed policy step and the soft target updates; returns the
     /// actor's loss.
-    pub fn actor_step(&mut self, batch: Minibatch) -> f64 {
+    pub fn actor_step(&mut self, batch: Minibatch<N::Input>) -> f64 {
         let c = &self.config;
-        let Minibatch { image, vector, .. } = batch;
+        let Minibatch { input, vector, .. } = batch;
         // Actor loss: −Q1(s, π(s)), plus the optional action penalty.
-        // Q1's image features do not depend on π: computed detached, the
+        // Q1's encoder features do not depend on π: computed detached, the
         // backward pass skips Q1's encoder (its gradients would be thrown
         // away).
-        let pi = self.actor.forward(image.clone(), vector.clone());
+        let pi = N::act(&self.actor, input.clone(), vector.clone());
         let penalty = pi.clone().powi_scalar(2).mean() * c.action_l2;
-        let features = self.critics.q1.encode(image).detach();
-        let q = self.critics.q1.forward_features(features, vector, pi);
+        let features = N::features(&self.critics.q1, input).detach();
+        let q = N::value(&self.critics.q1, features, vector, pi);
         let loss = q.mean().neg() + penalty;
         let actor_loss = scalar(&loss);
         let grads = GradientsParams::from_grads(loss.backward(), &self.actor);
@@ -195,22 +199,17 @@ impl Td3 {
         actor_loss
     }
 
-    /// Fresh networks for `height` x `width` images on `device` (an
-    /// autodiff device), once `config` is checked.
-    pub fn new(
-        config: Td3Config,
-        height: usize,
-        width: usize,
-        device: &Device,
-    ) -> Result<Self, ConfigError> {
+    /// Fresh networks of `networks` on `device` (an autodiff device),
+    /// once `config` is checked.
+    pub fn new(config: Td3Config, networks: N, device: &Device) -> Result<Self, ConfigError> {
         config.validate()?;
-        let encoder = EncoderConfig::new(height, width);
-        let actor = ActorConfig::new(encoder.clone()).init(device);
+        let actor = networks.actor(device);
         let critics = TwinCritic {
-            q1: CriticConfig::new(encoder.clone()).init(device),
-            q2: CriticConfig::new(encoder).init(device),
+            q1: networks.critic(device),
+            q2: networks.critic(device),
         };
         Ok(Self {
+            networks,
             actor_target: actor.valid(),
             critics_target: critics.valid(),
             actor,
@@ -223,8 +222,13 @@ impl Td3 {
     }
 
     /// The current policy, for inference (no autodiff).
-    pub fn policy(&self) -> Actor {
+    pub fn policy(&self) -> N::Actor {
         self.actor.valid()
+    }
+
+    /// The architecture trained.
+    pub fn networks(&self) -> &N {
+        &self.networks
     }
 
     /// Updates made so far.
@@ -398,7 +402,7 @@ fn adam(config: &Td3Config) -> ModuleOptimizer {
         .init()
 }
 
-impl Td3 {
+impl<N: Networks> Td3<N> {
     /// The networks, targets and optimiser states as named burnpack byte
     /// buffers, for a checkpoint.
     pub fn save_state(&self) -> Result<Vec<(&'static str, Vec<u8>)>, RecordError> {

@@ -16,7 +16,9 @@ use std::path::PathBuf;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 use tweezer_gym::{Renderer, SplitMix64};
-use tweezer_nets::{ARCHITECTURE, SnapshotInfo, encode};
+use tweezer_nets::{
+    Architecture, Networks, PaperNetworks, SetNetworks, SnapshotError, SnapshotInfo, encode,
+};
 
 /// Sums of update statistics between two metrics lines.
 #[derive(Default)]
@@ -51,12 +53,58 @@ struct RateMark {
     updates: u64,
 }
 
-/// TD3 fed from the shared replay.
-pub struct Trainer {
+/// The training thread's work, whichever networks it trains.
+pub trait Training: Send {
+    /// Publishes the untrained policy when no snapshot exists yet, so that
+    /// a client asking once the learner listens finds one.
+    fn publish_first(&mut self) -> anyhow::Result<()>;
+
+    /// Trains until the shared state says stop, then writes a final
+    /// checkpoint. An error (a full disk) ends training; a diverged update
+    /// does not ([`crate::divergence`]).
+    fn run(self: Box<Self>) -> anyhow::Result<()>;
+}
+
+/// Fresh networks of the architecture `file` configures, or the state of
+/// `resumed`, training on `device`.
+pub fn training(
+    file: &LearnerFile,
     shared: Arc<LearnerState>,
-    td3: Td3,
-    guard: DivergenceGuard,
-    renderer: Renderer,
+    checkpoints: Checkpoints,
+    resumed: Option<&Loaded>,
+    device: &Device,
+) -> anyhow::Result<Box<dyn Training>> {
+    Ok(match file.learner.network.architecture(&file.env) {
+        Architecture::Paper { .. } => {
+            let networks = PaperNetworks::new(Renderer::for_config(&file.env)?);
+            Box::new(Trainer::new(
+                networks,
+                file,
+                shared,
+                checkpoints,
+                resumed,
+                device,
+            )?)
+        }
+        Architecture::Set(shape) => {
+            let networks = SetNetworks::new(shape, file.env.fov_px);
+            Box::new(Trainer::new(
+                networks,
+                file,
+                shared,
+                checkpoints,
+                resumed,
+                device,
+            )?)
+        }
+    })
+}
+
+/// TD3 fed from the shared replay.
+struct Trainer<N: Networks> {
+    shared: Arc<LearnerState>,
+    td3: Td3<N>,
+    guard: DivergenceGuard<N>,
     device: Device,
     sampler: SplitMix64,
     file: LearnerFile,
@@ -66,9 +114,29 @@ pub struct Trainer {
     last_checkpoint: Instant,
 }
 
-impl Trainer {
-    /// Fresh networks, or the state of `resumed`, training on `device`.
-    pub fn new(
+impl<N: Networks> Training for Trainer<N> {
+    fn publish_first(&mut self) -> anyhow::Result<()> {
+        let has_snapshot = self
+            .shared
+            .snapshots()
+            .is_some_and(|s| s.latest_version() > 0);
+        if !has_snapshot {
+            self.publish()?;
+        }
+        Ok(())
+    }
+
+    fn run(mut self: Box<Self>) -> anyhow::Result<()> {
+        let result = self.train();
+        let last = self.checkpoint();
+        result.and(last.map(|_| ()))
+    }
+}
+
+impl<N: Networks> Trainer<N> {
+    /// Fresh `networks`, or the state of `resumed`, training on `device`.
+    fn new(
+        networks: N,
         file: &LearnerFile,
         shared: Arc<LearnerState>,
         checkpoints: Checkpoints,
@@ -76,20 +144,19 @@ impl Trainer {
         device: &Device,
     ) -> anyhow::Result<Self> {
         let config = &file.learner;
-        let renderer = Renderer::for_config(&file.env)?;
         let device = device.clone().autodiff();
         device.seed(config.seed);
-        let (h, w) = (renderer.height(), renderer.width());
-        let mut td3 = Td3::new(config.td3.clone(), h, w, &device)?;
+        let architecture = networks.architecture();
+        let mut td3 = Td3::new(config.td3.clone(), networks, &device)?;
         let mut sampler = SplitMix64::derived(config.seed, 0x5a3_91e);
         if let Some(loaded) = resumed {
             let header = &loaded.header;
-            if header.resolution != [h, w] {
+            let trained = header.architecture();
+            if trained != architecture {
                 bail!(
-                    "checkpoint {} was trained on {}x{} images, the config renders {w}x{h}",
+                    "checkpoint {} holds other networks than the config trains: {}",
                     loaded.path.display(),
-                    header.resolution[1],
-                    header.resolution[0]
+                    SnapshotError::mismatch(&architecture, &trained)
                 );
             }
             td3.load_state(|name| loaded.part(name), header.updates)
@@ -106,7 +173,6 @@ impl Trainer {
             guard: DivergenceGuard::new(&td3),
             shared,
             td3,
-            renderer,
             device,
             sampler,
             file: file.clone(),
@@ -114,28 +180,6 @@ impl Trainer {
             sums: Sums::default(),
             last_checkpoint: Instant::now(),
         })
-    }
-
-    /// Publishes the untrained policy when no snapshot exists yet, so that
-    /// a client asking once the learner listens finds one.
-    pub fn publish_first(&mut self) -> anyhow::Result<()> {
-        let has_snapshot = self
-            .shared
-            .snapshots()
-            .is_some_and(|s| s.latest_version() > 0);
-        if !has_snapshot {
-            self.publish()?;
-        }
-        Ok(())
-    }
-
-    /// Trains until the shared state says stop, then writes a final
-    /// checkpoint. An error (a full disk) ends training; a diverged update
-    /// does not ([`crate::divergence`]).
-    pub fn run(mut self) -> anyhow::Result<()> {
-        let result = self.train();
-        let last = self.checkpoint();
-        result.and(last.map(|_| ()))
     }
 
     fn train(&mut self) -> anyhow::Result<()> {
@@ -180,7 +224,7 @@ impl Trainer {
             .shared
             .replay()
             .sample(self.file.learner.batch_size, &mut self.sampler)?;
-        let batch = minibatch_tensors(&sampled, &self.renderer, &self.device);
+        let batch = minibatch_tensors(&sampled, self.td3.networks(), &self.device);
         let stats = self.td3.update(batch);
         if let Some(limiter) = self.shared.limiter() {
             limiter.updated();
@@ -316,9 +360,7 @@ impl Trainer {
             return Ok(());
         };
         let info = SnapshotInfo {
-            architecture: ARCHITECTURE.into(),
-            height: self.renderer.height(),
-            width: self.renderer.width(),
+            architecture: self.td3.networks().architecture(),
             version: snapshots.next_version(),
             training_step: self.td3.updates(),
         };
@@ -356,7 +398,7 @@ impl Trainer {
     }
 
     /// Writes a checkpoint of everything training needs to go on.
-    pub fn checkpoint(&mut self) -> anyhow::Result<PathBuf> {
+    fn checkpoint(&mut self) -> anyhow::Result<PathBuf> {
         let _span = tracing::info_span!("checkpoint").entered();
         let started = Instant::now();
         let captured = self.shared.capture(self.file.learner.checkpoints.replay);
@@ -364,7 +406,13 @@ impl Trainer {
             updates: self.td3.updates(),
             steps_inserted: captured.steps_inserted,
             sampler_state: self.sampler.state(),
-            resolution: [self.renderer.height(), self.renderer.width()],
+            resolution: self
+                .td3
+                .networks()
+                .architecture()
+                .image()
+                .map_or([0, 0], |(h, w)| [h, w]),
+            architecture: Some(self.td3.networks().architecture()),
             episodes: captured.episodes,
             snapshots: self
                 .shared

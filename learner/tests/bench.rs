@@ -1,6 +1,8 @@
 //! `learner bench` on a small configuration: every figure is measured.
 
 use burn::tensor::Device;
+use tweezer_learner::bench::LearnerBench;
+use tweezer_learner::config::{NetworkConfig, SetNetworkConfig};
 
 #[test]
 fn the_bench_measures_every_figure_of_a_small_configuration() {
@@ -11,7 +13,18 @@ fn the_bench_measures_every_figure_of_a_small_configuration() {
         },
         ..tweezer_gym::EnvConfig::default()
     };
-    let report = tweezer_learner::bench::run(&env, 32, 2_000, 2, &Device::flex()).unwrap();
+    let paper = NetworkConfig::Paper;
+    let set = NetworkConfig::Set(SetNetworkConfig::default());
+    for network in [paper, set] {
+        let report =
+            tweezer_learner::bench::run(&env, &network, 32, 2_000, 2, &Device::flex()).unwrap();
+        check(&report);
+        let name = network.architecture(&env).name();
+        assert!(report.architecture.starts_with(name), "{report:?}");
+    }
+}
+
+fn check(report: &LearnerBench) {
     assert_eq!(report.updates_timed, 2);
     for v in [
         report.update_ms_mean,

@@ -1,9 +1,24 @@
-//! Sampled transitions become tensors whose images follow the renderer.
+//! Sampled transitions become tensors whose images follow the renderer, or
+//! sets whose features follow the sphere sets.
 
 use burn::tensor::Device;
 use tweezer_gym::{EnvConfig, ImageConfig, RandomSteps, Renderer, SplitMix64};
 use tweezer_learner::minibatch::minibatch_tensors;
+use tweezer_learner::replay::SampledTransitions;
 use tweezer_learner::replay::{Replay, ReplayConfig};
+use tweezer_nets::{PaperNetworks, SetNetworks, SetShape};
+
+fn sampled(config: &EnvConfig) -> SampledTransitions {
+    let mut replay = Replay::new(ReplayConfig {
+        capacity: 500,
+        ..ReplayConfig::default()
+    });
+    let mut steps = RandomSteps::new(config, 4, 2).unwrap();
+    while replay.len() < 500 {
+        replay.insert(0, &steps.next().unwrap()).unwrap();
+    }
+    replay.sample(6, &mut SplitMix64::new(9)).unwrap()
+}
 
 #[test]
 fn sampled_batches_render_into_tensors() {
@@ -15,23 +30,16 @@ fn sampled_batches_render_into_tensors() {
         ..EnvConfig::default()
     };
     let renderer = Renderer::for_config(&config).unwrap();
-    let mut replay = Replay::new(ReplayConfig {
-        capacity: 500,
-        ..ReplayConfig::default()
-    });
-    let mut steps = RandomSteps::new(&config, 4, 2).unwrap();
-    while replay.len() < 500 {
-        replay.insert(0, &steps.next().unwrap()).unwrap();
-    }
-    let sampled = replay.sample(6, &mut SplitMix64::new(9)).unwrap();
+    let sampled = sampled(&config);
     let device = Device::flex();
-    let batch = minibatch_tensors(&sampled, &renderer, &device);
-    assert_eq!(batch.image.dims(), [6, 1, 64, 80]);
-    assert_eq!(batch.next_image.dims(), [6, 1, 64, 80]);
+    let networks = PaperNetworks::new(renderer.clone());
+    let batch = minibatch_tensors(&sampled, &networks, &device);
+    assert_eq!(batch.input.dims(), [6, 1, 64, 80]);
+    assert_eq!(batch.next_input.dims(), [6, 1, 64, 80]);
     assert_eq!(batch.vector.dims(), [6, 2]);
     assert_eq!(batch.reward.dims(), [6, 1]);
-    let pixels: Vec<f32> = batch.image.into_data().try_to_vec().unwrap();
-    let next: Vec<f32> = batch.next_image.into_data().try_to_vec().unwrap();
+    let pixels: Vec<f32> = batch.input.into_data().try_to_vec().unwrap();
+    let next: Vec<f32> = batch.next_input.into_data().try_to_vec().unwrap();
     let mut expected = vec![0f32; renderer.pixels()];
     for i in 0..6 {
         let slot = i * renderer.pixels()..(i + 1) * renderer.pixels();
@@ -44,4 +52,28 @@ fn sampled_batches_render_into_tensors() {
     }
     let rewards: Vec<f32> = batch.reward.into_data().try_to_vec().unwrap();
     assert_eq!(rewards, sampled.rewards);
+}
+
+#[test]
+fn sampled_batches_become_sets_without_rendering() {
+    let config = EnvConfig::default();
+    let sampled = sampled(&config);
+    let networks = SetNetworks::new(SetShape::new(config.fov_px), config.fov_px);
+    let batch = minibatch_tensors(&sampled, &networks, &Device::flex());
+    let longest = sampled.centres.iter().map(Vec::len).max().unwrap();
+    assert!(longest > 0, "a dense field shows spheres");
+    assert_eq!(batch.input.spheres.dims(), [6, longest, 3]);
+    let features: Vec<f32> = batch.input.spheres.into_data().try_to_vec().unwrap();
+    let mask: Vec<f32> = batch.input.mask.into_data().try_to_vec().unwrap();
+    for (i, centres) in sampled.centres.iter().enumerate() {
+        let expected = networks.sets().features(centres);
+        for k in 0..longest {
+            let row = i * longest + k;
+            let got = &features[row * 3..row * 3 + 3];
+            match expected.get(k) {
+                Some(f) => assert_eq!((got, mask[row]), (&f[..], 1.0)),
+                None => assert_eq!((got, mask[row]), (&[0.0; 3][..], 0.0)),
+            }
+        }
+    }
 }

@@ -3,16 +3,17 @@
 
 use burn::tensor::Device;
 use tweezer_learner::snapshots::{Selector, Snapshots, SnapshotsError};
-use tweezer_nets::{ARCHITECTURE, ActorConfig, EncoderConfig, SnapshotInfo, encode};
+use tweezer_nets::{ActorConfig, Architecture, EncoderConfig, SnapshotInfo, encode};
 
 fn snapshot(version: u64) -> Vec<u8> {
     let actor = ActorConfig::new(EncoderConfig::new(16, 20)).init(&Device::flex());
     encode(
         &actor,
         &SnapshotInfo {
-            architecture: ARCHITECTURE.into(),
-            height: 16,
-            width: 20,
+            architecture: Architecture::Paper {
+                height: 16,
+                width: 20,
+            },
             version,
             training_step: version * 100,
         },

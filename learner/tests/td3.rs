@@ -3,9 +3,11 @@
 use burn::module::Module;
 use burn::nn::{Linear, LinearConfig};
 use burn::tensor::{Device, Distribution, Tensor, TensorData};
+use tweezer_gym::{EnvConfig, ImageConfig, Renderer, SplitMix64};
 use tweezer_learner::td3::{
     Minibatch, Td3, Td3Config, smoothed_target_action, soft_update, td_target,
 };
+use tweezer_nets::{Networks, PaperNetworks, SetBatch, SetNetworks, SetShape};
 
 fn values<const D: usize>(t: Tensor<D>) -> Vec<f32> {
     t.into_data().try_to_vec::<f32>().unwrap()
@@ -72,16 +74,53 @@ fn soft_update_blends_every_parameter() {
     close(&w(&soft_update(&online, &target, 0.0)), &w(&target));
 }
 
-fn batch(n: usize, device: &Device) -> Minibatch {
+fn cnn(height: u32, width: u32) -> PaperNetworks {
+    let env = EnvConfig {
+        image: ImageConfig { width, height },
+        ..EnvConfig::default()
+    };
+    PaperNetworks::new(Renderer::for_config(&env).unwrap())
+}
+
+fn batch(n: usize, device: &Device) -> Minibatch<Tensor<4>> {
     let image = || Tensor::<4>::random([n, 1, 64, 80], Distribution::Bernoulli(0.1), device);
     let pair = || Tensor::<2>::random([n, 2], Distribution::Uniform(-1.0, 1.0), device);
     Minibatch {
-        image: image(),
+        input: image(),
         vector: pair(),
         action: pair(),
         reward: Tensor::<2>::random([n, 1], Distribution::Uniform(-1.0, 10.0), device),
         terminated: Tensor::<2>::zeros([n, 1], device),
-        next_image: image(),
+        next_input: image(),
+        next_vector: pair(),
+    }
+}
+
+/// Random scenes of up to 20 spheres around a 1280 x 1024 field.
+fn set_batch(n: usize, networks: &SetNetworks, device: &Device) -> Minibatch<SetBatch> {
+    let mut rng = SplitMix64::new(n as u64);
+    let scenes: Vec<Vec<[f32; 2]>> = (0..n)
+        .map(|_| {
+            let count = rng.integer_inclusive(0, 20) as usize;
+            (0..count)
+                .map(|_| {
+                    [
+                        rng.uniform(-27.0, 1307.0) as f32,
+                        rng.uniform(-27.0, 1051.0) as f32,
+                    ]
+                })
+                .collect()
+        })
+        .collect();
+    let input = || networks.input(scenes.iter().map(Vec::as_slice), device);
+    let pair = || Tensor::<2>::random([n, 2], Distribution::Uniform(-1.0, 1.0), device);
+    Minibatch {
+        input: input(),
+        vector: pair(),
+        action: pair(),
+        reward: Tensor::<2>::random([n, 1], Distribution::Uniform(-1.0, 10.0), device),
+        terminated: Tensor::<2>::zeros([n, 1], device),
+        next_input: input(),
         next_vector: pair(),
     }
 }
@@ -89,12 +128,12 @@ fn batch(n: usize, device: &Device) -> Minibatch {
 #[test]
 fn the_actor_updates_every_second_step_and_losses_are_finite() {
     let device = Device::flex().autodiff();
-    let mut td3 = Td3::new(Td3Config::default(), 64, 80, &device).unwrap();
+    let mut td3 = Td3::new(Td3Config::default(), cnn(64, 80), &device).unwrap();
     let probe = batch(4, &device);
-    let act = |td3: &Td3| {
+    let act = |td3: &Td3<PaperNetworks>| {
         values(
             td3.policy()
-                .forward(probe.image.clone().valid(), probe.vector.clone().valid()),
+                .forward(probe.input.clone().valid(), probe.vector.clone().valid()),
         )
     };
     let a0 = act(&td3);
@@ -141,7 +180,9 @@ fn bad_hyper_parameters_are_named() {
             "td3.noise_clip",
         ),
     ] {
-        let err = Td3::new(config, 64, 80, &device).err().expect("refused");
+        let err = Td3::new(config, cnn(64, 80), &device)
+            .err()
+            .expect("refused");
         assert!(err.to_string().contains(field), "{err}");
     }
 }
@@ -151,30 +192,36 @@ fn a_diverged_update_rolls_back_to_the_last_good_networks_and_repeated_ones_give
     use tweezer_learner::divergence::{DivergenceGuard, GOOD_RUN, MAX_ROLLBACKS, Verdict};
     let device = Device::flex().autodiff();
     let (h, w) = (16, 20);
-    let mut td3 = Td3::new(Td3Config::default(), h, w, &device).unwrap();
+    let mut td3 = Td3::new(Td3Config::default(), cnn(h, w), &device).unwrap();
     let mut guard = DivergenceGuard::new(&td3);
     let batch = |reward: f32| {
-        let image = || Tensor::<4>::random([4, 1, h, w], Distribution::Bernoulli(0.1), &device);
+        let image = || {
+            Tensor::<4>::random(
+                [4, 1, h as usize, w as usize],
+                Distribution::Bernoulli(0.1),
+                &device,
+            )
+        };
         let pair = || Tensor::<2>::random([4, 2], Distribution::Uniform(-1.0, 1.0), &device);
         Minibatch {
-            image: image(),
+            input: image(),
             vector: pair(),
             action: pair(),
             reward: Tensor::<2>::full([4, 1], reward, &device),
             terminated: Tensor::<2>::zeros([4, 1], &device),
-            next_image: image(),
+            next_input: image(),
             next_vector: pair(),
         }
     };
     let probe = batch(0.0);
-    let act = |td3: &Td3| {
+    let act = |td3: &Td3<PaperNetworks>| {
         values(
             td3.policy()
-                .forward(probe.image.clone().valid(), probe.vector.clone().valid()),
+                .forward(probe.input.clone().valid(), probe.vector.clone().valid()),
         )
     };
     // A reward whose square overflows f32: the critic loss is infinite.
-    let poisoned = |td3: &mut Td3, guard: &mut DivergenceGuard| {
+    let poisoned = |td3: &mut Td3<PaperNetworks>, guard: &mut DivergenceGuard<PaperNetworks>| {
         let stats = td3.update(batch(1e38));
         assert!(!stats.critic_loss.is_finite());
         guard.check(td3, &stats)
@@ -202,4 +249,36 @@ fn a_diverged_update_rolls_back_to_the_last_good_networks_and_repeated_ones_give
     }
     assert_eq!(poisoned(&mut td3, &mut guard), Verdict::GiveUp { lost: 1 });
     assert_eq!(act(&td3), trained);
+}
+
+#[test]
+fn the_set_networks_train_with_the_same_schedule() {
+    let device = Device::flex().autodiff();
+    let networks = SetNetworks::new(SetShape::new([1280, 1024]), [1280, 1024]);
+    let mut td3 = Td3::new(Td3Config::default(), networks.clone(), &device).unwrap();
+    let probe = set_batch(5, &networks, &device);
+    let act = |td3: &Td3<SetNetworks>| {
+        values(SetNetworks::act(
+            &td3.policy(),
+            probe.input.clone().valid(),
+            probe.vector.clone().valid(),
+        ))
+    };
+    let a0 = act(&td3);
+    let s1 = td3.update(set_batch(16, &networks, &device));
+    assert!(s1.critic_loss.is_finite() && s1.mean_q.is_finite());
+    assert_eq!((s1.actor_loss, act(&td3)), (None, a0.clone()));
+    let s2 = td3.update(set_batch(16, &networks, &device));
+    assert!(s2.actor_loss.is_some_and(f64::is_finite));
+    assert_ne!(act(&td3), a0, "the second update trains the actor");
+    // Checkpointed state restores the same networks.
+    let saved = td3.save_state().unwrap();
+    let mut restored = Td3::new(Td3Config::default(), networks.clone(), &device).unwrap();
+    restored
+        .load_state(
+            |name| saved.iter().find(|(n, _)| *n == name).map(|(_, b)| &b[..]),
+            td3.updates(),
+        )
+        .unwrap();
+    assert_eq!(act(&restored), act(&td3));
 }

@@ -3,17 +3,22 @@
 //! that read the sphere centres directly ([`SetActor`], [`SetCritic`]):
 //! permutation-invariant, exact at any field of view, no rendering.
 //!
-//! Both take the binary image observation `[batch, 1, height, width]` and the
-//! target vector `[batch, 2]`; the critic also takes the action `[batch, 2]`.
-//! Any resolution works: the flatten size follows. On a device without autodiff
+//! The CNNs take the binary image observation `[batch, 1, height, width]`,
+//! the set networks a padded set of sphere features ([`SetBatch`]); both
+//! take the target vector `[batch, 2]`, and the critics also the action
+//! `[batch, 2]`. Any resolution works: the flatten size follows.
+//! [`Networks`] is what TD3 and the policies need of either; an
+//! [`Architecture`] names one with its hyper-parameters. On a device without autodiff
 //! (actors, the hardware agent, TD3 targets) BatchNorm uses its running
 //! statistics.
 
 mod actor;
+mod architecture;
 mod critic;
 mod encoder;
 mod head;
 mod images;
+mod networks;
 mod policy;
 mod set_actor;
 mod set_critic;
@@ -22,15 +27,17 @@ mod snapshot;
 mod spheres;
 
 pub use actor::{Actor, ActorConfig};
+pub use architecture::{
+    Architecture, ArchitectureError, PAPER_ARCHITECTURE, Pooling, SET_ARCHITECTURE, SetShape,
+};
 pub use critic::{Critic, CriticConfig};
 pub use encoder::{Encoder, EncoderConfig};
 pub use head::{Head, HeadConfig};
 pub use images::render_images;
-pub use policy::{NetworkPolicy, PolicyFileError};
+pub use networks::{Networks, PaperNetworks, SetNetworks};
+pub use policy::{LoadError, NetworkPolicy, PolicyFileError};
 pub use set_actor::{SetActor, SetActorConfig};
 pub use set_critic::{SetCritic, SetCriticConfig};
 pub use set_encoder::{SetEncoder, SetEncoderConfig};
-pub use snapshot::{
-    ARCHITECTURE, SnapshotError, SnapshotInfo, decode, encode, file_sha256, read_info,
-};
+pub use snapshot::{SnapshotError, SnapshotInfo, decode, encode, file_sha256, read_info};
 pub use spheres::{SPHERE_FEATURES, SetBatch, SphereSets};

@@ -1,9 +1,10 @@
-//! A network as a `gym::Policy`: observations are rendered by the shared
-//! renderer into one batch and the actor runs once per call.
+//! A network as a `gym::Policy`, whichever architecture a snapshot holds:
+//! observations become one batch of the network's inputs (rendered images
+//! or sphere sets) and the actor runs once per call.
 
-use crate::actor::Actor;
-use crate::images::render_images;
-use crate::snapshot::{SnapshotError, SnapshotInfo, decode};
+use crate::architecture::Architecture;
+use crate::networks::{Networks, PaperNetworks, SetNetworks};
+use crate::snapshot::{SnapshotError, SnapshotInfo, decode, read_info};
 use burn::tensor::{Device, Tensor, TensorData};
 use std::path::Path;
 use tweezer_config::ConfigError;
@@ -33,36 +34,71 @@ pub enum PolicyFileError {
     Config(#[from] ConfigError),
 }
 
-/// The actor network choosing actions for batches of observations, on a
+/// A snapshot that cannot drive an environment.
+#[derive(Debug, thiserror::Error)]
+pub enum LoadError {
+    /// The snapshot is unusable or of another network.
+    #[error(transparent)]
+    Snapshot(#[from] SnapshotError),
+    /// The environment config has no renderer.
+    #[error(transparent)]
+    Config(#[from] ConfigError),
+}
+
+/// An actor network choosing actions for batches of observations, on a
 /// device without autodiff (BatchNorm uses its running statistics).
-#[derive(Debug)]
-pub struct NetworkPolicy {
-    actor: Actor,
-    renderer: Renderer,
+pub struct NetworkPolicy(Box<dyn Policy + Send>);
+
+impl std::fmt::Debug for NetworkPolicy {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str("NetworkPolicy")
+    }
+}
+
+/// An actor of `N` and what makes its inputs.
+struct Inference<N: Networks> {
+    networks: N,
+    actor: N::Actor,
     device: Device,
 }
 
 impl NetworkPolicy {
-    /// A policy from an actor and the renderer of its input resolution.
-    pub fn new(actor: Actor, renderer: Renderer, device: Device) -> Self {
-        Self {
+    /// A policy from an actor of `networks`.
+    pub fn new<N: Networks>(networks: N, actor: N::Actor, device: Device) -> Self {
+        Self(Box::new(Inference {
+            networks,
             actor,
-            renderer,
             device,
+        }))
+    }
+
+    /// Loads a snapshot of either architecture for the observations of
+    /// `env`: a CNN must take the resolution `env` renders; a set network
+    /// takes `env`'s field of view at the scale it was trained at.
+    pub fn from_snapshot(
+        bytes: &[u8],
+        env: &EnvConfig,
+        device: &Device,
+    ) -> Result<(Self, SnapshotInfo), LoadError> {
+        fn load<N: Networks>(
+            bytes: &[u8],
+            networks: N,
+            device: &Device,
+        ) -> Result<(NetworkPolicy, SnapshotInfo), LoadError> {
+            let (actor, info) = decode(bytes, &networks, device)?;
+            Ok((NetworkPolicy::new(networks, actor, device.clone()), info))
+        }
+        match read_info(bytes)?.architecture {
+            Architecture::Paper { .. } => load(
+                bytes,
+                PaperNetworks::new(Renderer::for_config(env)?),
+                device,
+            ),
+            Architecture::Set(shape) => load(bytes, SetNetworks::new(shape, env.fov_px), device),
         }
     }
 
-    /// Loads a snapshot for the renderer's image resolution.
-    pub fn from_snapshot(
-        bytes: &[u8],
-        renderer: Renderer,
-        device: &Device,
-    ) -> Result<(Self, SnapshotInfo), SnapshotError> {
-        let (actor, info) = decode(bytes, renderer.height(), renderer.width(), device)?;
-        Ok((Self::new(actor, renderer, device.clone()), info))
-    }
-
-    /// Loads the snapshot file at `path` for the images of `env`.
+    /// Loads the snapshot file at `path` for the observations of `env`.
     pub fn from_file(
         path: &Path,
         env: &EnvConfig,
@@ -73,15 +109,23 @@ impl NetworkPolicy {
             path: name(),
             source,
         })?;
-        let renderer = Renderer::for_config(env)?;
-        Self::from_snapshot(&bytes, renderer, device).map_err(|source| PolicyFileError::Snapshot {
-            path: name(),
-            source,
+        Self::from_snapshot(&bytes, env, device).map_err(|e| match e {
+            LoadError::Snapshot(source) => PolicyFileError::Snapshot {
+                path: name(),
+                source,
+            },
+            LoadError::Config(e) => PolicyFileError::Config(e),
         })
     }
 }
 
 impl Policy for NetworkPolicy {
+    fn act(&mut self, observations: &[&Observation], actions: &mut [Action]) {
+        self.0.act(observations, actions);
+    }
+}
+
+impl<N: Networks> Policy for Inference<N> {
     /// A network that outputs NaN (broken weights) stands still rather than
     /// driving the stage anywhere.
     fn act(&mut self, observations: &[&Observation], actions: &mut [Action]) {
@@ -91,11 +135,9 @@ impl Policy for NetworkPolicy {
         }
         let vectors: Vec<f32> = observations.iter().flat_map(|o| o.vector).collect();
         let centres = observations.iter().map(|o| o.centres.as_slice());
-        let image = render_images(&self.renderer, centres, &self.device);
+        let input = self.networks.input(centres, &self.device);
         let vector = Tensor::<2>::from_data(TensorData::new(vectors, [n, 2]), &self.device);
-        let out: Vec<f32> = self
-            .actor
-            .forward(image, vector)
+        let out: Vec<f32> = N::act(&self.actor, input, vector)
             .into_data()
             .try_to_vec()
             .expect("the actor outputs f32");

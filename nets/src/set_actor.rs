@@ -46,8 +46,8 @@ impl SetActor {
     /// - `vector`: `[batch, 2]`
     /// - output: `[batch, 2]`, each component in [-1, 1]
     pub fn forward(&self, set: SetBatch, vector: Tensor<2>) -> Tensor<2> {
-        let x = self.encoder.forward(set); // [batch, 2 * set hidden]
-        let x = Tensor::cat(vec![x, vector], 1); // [batch, 2 * set hidden + 2]
+        let x = self.encoder.forward(set); // [batch, features]
+        let x = Tensor::cat(vec![x, vector], 1); // [batch, features + 2]
         tanh(self.head.forward(x)) // [batch, 2]
     }
 }

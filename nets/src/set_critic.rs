@@ -45,8 +45,24 @@ impl SetCritic {
     /// - `action`: `[batch, 2]`
     /// - output: `[batch, 1]`
     pub fn forward(&self, set: SetBatch, vector: Tensor<2>, action: Tensor<2>) -> Tensor<2> {
-        let x = self.encoder.forward(set); // [batch, 2 * set hidden]
-        let x = Tensor::cat(vec![x, vector, action], 1); // [batch, 2 * set hidden + 4]
+        self.forward_features(self.encode(set), vector, action)
+    }
+
+    /// The pooled set features (`[batch, features]`): what
+    /// [`Self::forward`] computes first, and what does not depend on the
+    /// action.
+    pub fn encode(&self, set: SetBatch) -> Tensor<2> {
+        self.encoder.forward(set)
+    }
+
+    /// Q from pooled set features, target vector and action.
+    pub fn forward_features(
+        &self,
+        features: Tensor<2>,
+        vector: Tensor<2>,
+        action: Tensor<2>,
+    ) -> Tensor<2> {
+        let x = Tensor::cat(vec![features, vector, action], 1); // [batch, features + 4]
         self.head.forward(x) // [batch, 1]
     }
 }

@@ -1,28 +1,21 @@
 //! Policy snapshots: the actor's weights (BatchNorm statistics included) in
 //! a safetensors file, which any safetensors reader opens, with metadata
-//! naming the architecture, resolution, version and training step, and a
-//! SHA-256 of the weights that loading verifies.
+//! naming the architecture and its hyper-parameters, the version and
+//! training step, and a SHA-256 of the weights that loading verifies.
 
-use crate::actor::{Actor, ActorConfig};
-use crate::encoder::EncoderConfig;
+use crate::architecture::{Architecture, ArchitectureError};
+use crate::networks::Networks;
 use burn::module::{Module, ModuleMapper, ModuleVisitor, Param};
 use burn::tensor::{Device, Tensor, TensorData};
 use safetensors::tensor::{Dtype, SafeTensors, TensorView};
 use sha2::{Digest, Sha256};
 use std::collections::{BTreeMap, HashMap};
 
-/// The architecture this crate's `Actor` is, as snapshots name it.
-pub const ARCHITECTURE: &str = "tweezer-paper-actor-v1";
-
 /// What a snapshot says about itself.
-#[derive(Clone, Debug, PartialEq, Eq)]
+#[derive(Clone, Debug, PartialEq)]
 pub struct SnapshotInfo {
-    /// Network architecture.
-    pub architecture: String,
-    /// Input image height.
-    pub height: usize,
-    /// Input image width.
-    pub width: usize,
+    /// Network architecture and hyper-parameters.
+    pub architecture: Architecture,
     /// Snapshot version (increases with every snapshot of a run).
     pub version: u64,
     /// Learner updates made when it was taken.
@@ -41,27 +34,18 @@ pub enum SnapshotError {
         /// The field.
         field: &'static str,
     },
-    /// The network is of another architecture.
-    #[error("snapshot holds a `{found}` network, expected `{expected}`")]
-    Architecture {
+    /// The architecture it names cannot be built.
+    #[error("snapshot metadata: {0}")]
+    Architecture(#[from] ArchitectureError),
+    /// The network is not the one this process can use.
+    #[error("snapshot holds {found}, this process needs {expected}: {differences}")]
+    Mismatch {
         /// What we can load.
         expected: String,
         /// What the file holds.
         found: String,
-    },
-    /// The network expects another image resolution.
-    #[error(
-        "snapshot expects {found_w}x{found_h} images, this process renders {expected_w}x{expected_h}"
-    )]
-    Resolution {
-        /// Our width.
-        expected_w: usize,
-        /// Our height.
-        expected_h: usize,
-        /// The snapshot's width.
-        found_w: usize,
-        /// The snapshot's height.
-        found_h: usize,
+        /// What differs, field by field.
+        differences: String,
     },
     /// The weights do not match their checksum.
     #[error("snapshot weights fail their checksum (expected {expected}, computed {computed})")]
@@ -79,6 +63,17 @@ pub enum SnapshotError {
         /// What is wrong.
         reason: String,
     },
+}
+
+impl SnapshotError {
+    /// The refusal of a `found` network where `expected` is needed.
+    pub fn mismatch(expected: &Architecture, found: &Architecture) -> Self {
+        Self::Mismatch {
+            expected: expected.to_string(),
+            found: found.to_string(),
+            differences: found.differences(expected).join(", "),
+        }
+    }
 }
 
 /// Every float tensor of a module by its path (`encoder.conv1.weight`).
@@ -124,14 +119,18 @@ fn digest(tensors: &BTreeMap<String, (Vec<usize>, Vec<f32>)>) -> String {
 }
 
 /// Writes `actor` and `info` as safetensors bytes.
-pub fn encode(actor: &Actor, info: &SnapshotInfo) -> Vec<u8> {
+pub fn encode<M: Module>(actor: &M, info: &SnapshotInfo) -> Vec<u8> {
     let mut named = Named::default();
     actor.visit(&mut named);
     let mut metadata = HashMap::new();
     metadata.insert("format".to_string(), "tweezer-snapshot".to_string());
-    metadata.insert("architecture".to_string(), info.architecture.clone());
-    metadata.insert("height".to_string(), info.height.to_string());
-    metadata.insert("width".to_string(), info.width.to_string());
+    metadata.insert(
+        "architecture".to_string(),
+        info.architecture.name().to_string(),
+    );
+    for (name, value) in info.architecture.fields() {
+        metadata.insert(name.to_string(), value);
+    }
     metadata.insert("version".to_string(), info.version.to_string());
     metadata.insert("training_step".to_string(), info.training_step.to_string());
     metadata.insert("weights_sha256".to_string(), digest(&named.tensors));
@@ -172,10 +171,9 @@ fn metadata(bytes: &[u8]) -> Result<HashMap<String, String>, SnapshotError> {
 }
 
 fn info_of(metadata: &HashMap<String, String>) -> Result<SnapshotInfo, SnapshotError> {
+    let name: String = field(metadata, "architecture")?;
     Ok(SnapshotInfo {
-        architecture: field(metadata, "architecture")?,
-        height: field(metadata, "height")?,
-        width: field(metadata, "width")?,
+        architecture: Architecture::from_fields(&name, |k| metadata.get(k).map(String::as_str))?,
         version: field(metadata, "version")?,
         training_step: field(metadata, "training_step")?,
     })
@@ -237,29 +235,19 @@ impl ModuleMapper for Load<'_> {
     }
 }
 
-/// Loads a snapshot for images of `height` x `width` onto `device`,
-/// refusing other architectures, resolutions and corrupted weights.
-pub fn decode(
+/// Loads a snapshot of the architecture `networks` builds onto `device`,
+/// refusing any other architecture or hyper-parameters and corrupted
+/// weights.
+pub fn decode<N: Networks>(
     bytes: &[u8],
-    height: usize,
-    width: usize,
+    networks: &N,
     device: &Device,
-) -> Result<(Actor, SnapshotInfo), SnapshotError> {
+) -> Result<(N::Actor, SnapshotInfo), SnapshotError> {
     let metadata = metadata(bytes)?;
     let info = info_of(&metadata)?;
-    if info.architecture != ARCHITECTURE {
-        return Err(SnapshotError::Architecture {
-            expected: ARCHITECTURE.into(),
-            found: info.architecture,
-        });
-    }
-    if (info.height, info.width) != (height, width) {
-        return Err(SnapshotError::Resolution {
-            expected_w: width,
-            expected_h: height,
-            found_w: info.width,
-            found_h: info.height,
-        });
+    let expected = networks.architecture();
+    if info.architecture != expected {
+        return Err(SnapshotError::mismatch(&expected, &info.architecture));
     }
     let file = SafeTensors::deserialize(bytes).map_err(|e| SnapshotError::Format(e.to_string()))?;
     let mut tensors = BTreeMap::new();
@@ -282,7 +270,7 @@ pub fn decode(
     if computed != expected {
         return Err(SnapshotError::Checksum { expected, computed });
     }
-    let fresh = ActorConfig::new(EncoderConfig::new(height, width)).init(device);
+    let fresh = networks.actor(device);
     let mut load = Load {
         path: Vec::new(),
         tensors: &tensors,

@@ -4,13 +4,29 @@
 use burn::tensor::{Device, Tensor, TensorData};
 use tweezer_gym::SplitMix64;
 use tweezer_nets::{
-    SetActor, SetActorConfig, SetCritic, SetCriticConfig, SetEncoderConfig, SphereSets,
+    Pooling, SetActor, SetActorConfig, SetCritic, SetCriticConfig, SetEncoderConfig, SetShape,
+    SphereSets,
 };
 
-const FOV: [f32; 2] = [320.0, 256.0];
+const FOV: [u32; 2] = [320, 256];
+
+fn sets(max_spheres: usize, fov_px: [u32; 2]) -> SphereSets {
+    let shape = SetShape {
+        max_spheres,
+        fov_px: FOV,
+        ..SetShape::new(FOV)
+    };
+    SphereSets::new(&shape, fov_px)
+}
 
 fn nets(device: &Device) -> (SetActor, SetCritic) {
-    let encoder = SetEncoderConfig::new().with_hidden(32);
+    nets_pooled(Pooling::MaxMean, device)
+}
+
+fn nets_pooled(pooling: Pooling, device: &Device) -> (SetActor, SetCritic) {
+    let encoder = SetEncoderConfig::new()
+        .with_hidden(32)
+        .with_pooling(pooling);
     (
         SetActorConfig::new(encoder.clone()).init(device),
         SetCriticConfig::new(encoder).init(device),
@@ -28,23 +44,20 @@ fn scene(rng: &mut SplitMix64, spheres: usize) -> Vec<[f32; 2]> {
         .collect()
 }
 
-/// Actions and Q values of `scenes` with sets of `max_spheres`.
+/// Actions and Q values of `scenes` with sets padded to at least `pad`.
 fn outputs(
     (actor, critic): &(SetActor, SetCritic),
     scenes: &[Vec<[f32; 2]>],
-    max_spheres: usize,
+    pad: usize,
     device: &Device,
 ) -> (Vec<f32>, Vec<f32>) {
-    let sets = SphereSets {
-        fov_px: FOV,
-        max_spheres,
-    };
+    let sets = sets(64, FOV);
     let n = scenes.len();
     let vector = || {
         let v: Vec<f32> = (0..n).flat_map(|k| [0.3, -0.2 + 0.1 * k as f32]).collect();
         Tensor::<2>::from_data(TensorData::new(v, [n, 2]), device)
     };
-    let batch = || sets.batch(scenes.iter().map(Vec::as_slice), device);
+    let batch = || sets.batch_padded(scenes.iter().map(Vec::as_slice), pad, device);
     let action = actor.forward(batch(), vector());
     let q = critic.forward(batch(), vector(), action.clone());
     let values = |t: Tensor<2>| t.into_data().try_to_vec::<f32>().unwrap();
@@ -61,7 +74,6 @@ fn assert_close(a: &[f32], b: &[f32], what: &str) {
 #[test]
 fn shuffled_centres_give_the_same_action_and_value() {
     let device = Device::flex();
-    let nets = nets(&device);
     let mut rng = SplitMix64::new(7);
     let scenes: Vec<_> = (0..6).map(|k| scene(&mut rng, 3 + 4 * k)).collect();
     let shuffled: Vec<_> = scenes
@@ -74,10 +86,13 @@ fn shuffled_centres_give_the_same_action_and_value() {
             s
         })
         .collect();
-    let (a, q) = outputs(&nets, &scenes, 32, &device);
-    let (b, r) = outputs(&nets, &shuffled, 32, &device);
-    assert_close(&a, &b, "actions");
-    assert_close(&q, &r, "values");
+    for pooling in [Pooling::MaxMean, Pooling::Max, Pooling::Mean] {
+        let nets = nets_pooled(pooling, &device);
+        let (a, q) = outputs(&nets, &scenes, 1, &device);
+        let (b, r) = outputs(&nets, &shuffled, 1, &device);
+        assert_close(&a, &b, "actions");
+        assert_close(&q, &r, "values");
+    }
 }
 
 #[test]
@@ -86,7 +101,7 @@ fn padding_changes_nothing_and_an_empty_field_of_view_is_a_valid_input() {
     let nets = nets(&device);
     let mut rng = SplitMix64::new(11);
     let scenes = vec![scene(&mut rng, 9), Vec::new(), scene(&mut rng, 1)];
-    let (a, q) = outputs(&nets, &scenes, 16, &device);
+    let (a, q) = outputs(&nets, &scenes, 1, &device);
     let (b, r) = outputs(&nets, &scenes, 64, &device);
     assert_close(&a, &b, "actions");
     assert_close(&q, &r, "values");
@@ -96,22 +111,24 @@ fn padding_changes_nothing_and_an_empty_field_of_view_is_a_valid_input() {
 
 #[test]
 fn a_crowded_field_of_view_keeps_the_nearest_spheres() {
-    let sets = SphereSets {
-        fov_px: FOV,
-        max_spheres: 2,
-    };
-    let (mut features, mut mask) = (vec![0.0; 6], vec![0.0; 2]);
-    sets.write(
-        &[[0.0, 0.0], [170.0, 128.0], [160.0, 148.0]],
-        &mut features,
-        &mut mask,
-    );
-    assert_eq!(mask, [1.0, 1.0]);
+    let features = sets(2, FOV).features(&[[0.0, 0.0], [170.0, 128.0], [160.0, 148.0]]);
+    assert_eq!(features.len(), 2);
     // (10, 0) and (0, 20) px from the trap, over half the FOV width.
+    assert_close(&features[0], &[10.0 / 160.0, 0.0, 10.0 / 160.0], "nearest");
+    assert_close(&features[1], &[0.0, 20.0 / 160.0, 20.0 / 160.0], "second");
+}
+
+#[test]
+fn a_wider_field_of_view_keeps_the_trained_scale() {
+    // A sphere 10 px right of the trap reads the same in a field twice as
+    // wide: the trap moves to the new centre, the scale stays the trained
+    // one.
+    let wide = sets(32, [640, 512]).features(&[[330.0, 256.0], [0.0, 0.0]]);
+    let trained = sets(32, FOV).features(&[[170.0, 128.0]]);
+    assert_close(&wide[0], &trained[0], "same offset");
     assert_close(
-        &features[..3],
-        &[10.0 / 160.0, 0.0, 10.0 / 160.0],
-        "nearest",
+        &wide[1],
+        &[-2.0, -1.6, 2.0f32.hypot(1.6)],
+        "beyond the trained field",
     );
-    assert_close(&features[3..], &[0.0, 20.0 / 160.0, 20.0 / 160.0], "second");
 }

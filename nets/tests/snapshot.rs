@@ -1,80 +1,199 @@
-//! Snapshots round-trip and refuse what does not fit.
+//! Snapshots of either architecture round-trip, carry their
+//! hyper-parameters, and refuse what does not fit, saying what differs.
 
 use burn::tensor::{Device, Distribution, Tensor};
+use std::collections::HashMap;
+use tweezer_gym::{EnvConfig, ImageConfig, Observation, Policy, Renderer};
 use tweezer_nets::{
-    ARCHITECTURE, ActorConfig, EncoderConfig, SnapshotError, SnapshotInfo, decode, encode,
-    file_sha256, read_info,
+    Architecture, NetworkPolicy, Networks, PaperNetworks, Pooling, SetNetworks, SetShape,
+    SnapshotError, SnapshotInfo, decode, encode, file_sha256, read_info,
 };
 
-fn info(h: usize, w: usize) -> SnapshotInfo {
+fn env(width: u32, height: u32) -> EnvConfig {
+    EnvConfig {
+        image: ImageConfig { width, height },
+        ..EnvConfig::default()
+    }
+}
+
+fn paper(width: u32, height: u32) -> PaperNetworks {
+    PaperNetworks::new(Renderer::for_config(&env(width, height)).unwrap())
+}
+
+fn set(shape: SetShape) -> SetNetworks {
+    SetNetworks::new(shape, shape.fov_px)
+}
+
+fn info(architecture: Architecture) -> SnapshotInfo {
     SnapshotInfo {
-        architecture: ARCHITECTURE.into(),
-        height: h,
-        width: w,
+        architecture,
         version: 7,
         training_step: 1234,
     }
 }
 
+fn snapshot<N: Networks>(networks: &N, device: &Device) -> (N::Actor, Vec<u8>) {
+    let actor = networks.actor(device);
+    let bytes = encode(&actor, &info(networks.architecture()));
+    (actor, bytes)
+}
+
+/// The same file with metadata `key` set to `value` (checksum untouched).
+fn with_metadata(bytes: &[u8], key: &str, value: &str) -> Vec<u8> {
+    let file = safetensors::SafeTensors::deserialize(bytes).unwrap();
+    let (_, header) = safetensors::SafeTensors::read_metadata(bytes).unwrap();
+    let mut metadata: HashMap<String, String> = header.metadata().clone().unwrap();
+    metadata.insert(key.into(), value.into());
+    safetensors::serialize(file.tensors(), Some(metadata)).unwrap()
+}
+
+fn observations() -> Vec<Observation> {
+    vec![
+        Observation {
+            centres: vec![[600.0, 500.0], [700.0, 560.0], [10.0, 1000.0]],
+            vector: [0.6, -0.8],
+        },
+        Observation {
+            centres: vec![],
+            vector: [-0.1, 0.3],
+        },
+    ]
+}
+
+fn actions(policy: &mut NetworkPolicy) -> Vec<[f32; 2]> {
+    let obs = observations();
+    let refs: Vec<&Observation> = obs.iter().collect();
+    let mut out = vec![tweezer_gym::Action::ZERO; refs.len()];
+    policy.act(&refs, &mut out);
+    out.iter().map(|a| a.components()).collect()
+}
+
 #[test]
-fn round_trip_gives_the_same_policy() {
+fn a_paper_snapshot_round_trips_to_the_same_policy() {
     let device = Device::flex();
-    let actor = ActorConfig::new(EncoderConfig::new(64, 80)).init(&device);
-    let bytes = encode(&actor, &info(64, 80));
-    assert_eq!(read_info(&bytes).unwrap(), info(64, 80));
-    let (loaded, meta) = decode(&bytes, 64, 80, &device).unwrap();
-    assert_eq!(meta.version, 7);
+    let networks = paper(80, 64);
+    let (actor, bytes) = snapshot(&networks, &device);
+    let expected = info(Architecture::Paper {
+        height: 64,
+        width: 80,
+    });
+    assert_eq!(read_info(&bytes).unwrap(), expected);
+    let (loaded, meta) = decode(&bytes, &networks, &device).unwrap();
+    assert_eq!(meta, expected);
     let image = Tensor::<4>::random([3, 1, 64, 80], Distribution::Bernoulli(0.1), &device);
     let vector = Tensor::<2>::random([3, 2], Distribution::Uniform(-1.0, 1.0), &device);
-    let a: Vec<f32> = actor
-        .forward(image.clone(), vector.clone())
-        .into_data()
-        .try_to_vec()
-        .unwrap();
-    let b: Vec<f32> = loaded
-        .forward(image, vector)
-        .into_data()
-        .try_to_vec()
-        .unwrap();
-    assert_eq!(a, b);
-    assert_eq!(file_sha256(&bytes), file_sha256(&bytes.clone()));
+    let out = |a: &tweezer_nets::Actor| -> Vec<f32> {
+        a.forward(image.clone(), vector.clone())
+            .into_data()
+            .try_to_vec()
+            .unwrap()
+    };
+    assert_eq!(out(&actor), out(&loaded));
     assert_eq!(file_sha256(&bytes).len(), 64);
 }
 
 #[test]
-fn mismatches_and_corruption_are_refused() {
+fn a_set_snapshot_round_trips_with_its_hyper_parameters() {
     let device = Device::flex();
-    let actor = ActorConfig::new(EncoderConfig::new(64, 80)).init(&device);
-    let bytes = encode(&actor, &info(64, 80));
+    let shape = SetShape {
+        sphere_hidden: 24,
+        head_hidden: 40,
+        pooling: Pooling::Max,
+        max_spheres: 9,
+        fov_px: [1280, 1024],
+    };
+    let networks = set(shape);
+    let (actor, bytes) = snapshot(&networks, &device);
+    assert_eq!(read_info(&bytes).unwrap(), info(Architecture::Set(shape)));
+    let mut direct = NetworkPolicy::new(networks.clone(), actor, device.clone());
+    // Loading needs nothing but the file and the environment it acts in.
+    let (mut loaded, meta) = NetworkPolicy::from_snapshot(&bytes, &env(7, 5), &device).unwrap();
+    assert_eq!(meta.architecture, Architecture::Set(shape));
+    assert_eq!(actions(&mut direct), actions(&mut loaded));
+}
 
-    let err = decode(&bytes, 128, 160, &device).unwrap_err();
-    assert!(matches!(err, SnapshotError::Resolution { .. }), "{err}");
-    assert!(err.to_string().contains("80x64"), "{err}");
-
-    let other = encode(
-        &actor,
-        &SnapshotInfo {
-            architecture: "someone-elses-net".into(),
-            ..info(64, 80)
-        },
+#[test]
+fn mismatched_architectures_are_refused_naming_what_differs() {
+    let device = Device::flex();
+    let (_, cnn) = snapshot(&paper(80, 64), &device);
+    let err = decode(&cnn, &paper(160, 128), &device).unwrap_err();
+    assert!(matches!(err, SnapshotError::Mismatch { .. }), "{err}");
+    let text = err.to_string();
+    assert!(
+        text.contains("height 64 vs 128") && text.contains("width 80 vs 160"),
+        "{text}"
     );
-    let err = decode(&other, 64, 80, &device).unwrap_err();
-    assert!(matches!(err, SnapshotError::Architecture { .. }), "{err}");
+    // An actor rendering another resolution refuses the file.
+    let err = NetworkPolicy::from_snapshot(&cnn, &env(40, 32), &device).unwrap_err();
+    assert!(err.to_string().contains("width 80 vs 40"), "{err}");
+
+    let shape = SetShape::new([1280, 1024]);
+    let (_, sets) = snapshot(&set(shape), &device);
+    let wider = SetShape {
+        sphere_hidden: 128,
+        pooling: Pooling::Mean,
+        ..shape
+    };
+    let err = decode(&sets, &set(wider), &device).unwrap_err().to_string();
+    assert!(
+        err.contains("sphere_hidden 64 vs 128") && err.contains("pooling max_mean vs mean"),
+        "{err}"
+    );
+    let differences = err.rsplit("): ").next().unwrap();
+    assert_eq!(
+        differences,
+        "sphere_hidden 64 vs 128, pooling max_mean vs mean"
+    );
+    let err = decode(&sets, &paper(80, 64), &device)
+        .unwrap_err()
+        .to_string();
+    assert!(
+        err.contains("tweezer-set-actor-v1 vs tweezer-paper-actor-v1"),
+        "{err}"
+    );
+}
+
+#[test]
+fn bad_metadata_and_corruption_are_refused() {
+    let device = Device::flex();
+    let networks = set(SetShape::new([1280, 1024]));
+    let (_, bytes) = snapshot(&networks, &device);
+    let load = |b: &[u8]| NetworkPolicy::from_snapshot(b, &EnvConfig::default(), &device);
+
+    let other = with_metadata(&bytes, "architecture", "someone-elses-net");
+    let err = load(&other).unwrap_err().to_string();
+    assert!(
+        err.contains("unknown architecture `someone-elses-net`"),
+        "{err}"
+    );
+    // A hostile size is refused before anything is allocated.
+    let huge = with_metadata(&bytes, "sphere_hidden", "4000000000");
+    let err = load(&huge).unwrap_err().to_string();
+    assert!(err.contains("sphere_hidden"), "{err}");
+    let err = load(&with_metadata(&bytes, "pooling", "attention"))
+        .unwrap_err()
+        .to_string();
+    assert!(err.contains("`pooling`"), "{err}");
+    // Metadata that agrees with itself but not with the weights.
+    let err = load(&with_metadata(&bytes, "head_hidden", "32"))
+        .unwrap_err()
+        .to_string();
+    assert!(err.contains("shape"), "{err}");
 
     // Flip one byte of the last weight.
     let mut corrupt = bytes.clone();
     let last = corrupt.len() - 3;
     corrupt[last] ^= 0x40;
-    let err = decode(&corrupt, 64, 80, &device).unwrap_err();
+    let err = decode(&corrupt, &networks, &device).unwrap_err();
     assert!(matches!(err, SnapshotError::Checksum { .. }), "{err}");
 
     let truncated = &bytes[..bytes.len() / 2];
     assert!(matches!(
-        decode(truncated, 64, 80, &device),
+        decode(truncated, &networks, &device),
         Err(SnapshotError::Format(_))
     ));
     assert!(matches!(
-        decode(b"definitely not a snapshot", 64, 80, &device),
+        decode(b"definitely not a snapshot", &networks, &device),
         Err(SnapshotError::Format(_))
     ));
 }
@@ -82,11 +201,9 @@ fn mismatches_and_corruption_are_refused() {
 #[test]
 fn files_name_every_tensor_by_its_module_path() {
     let device = Device::flex();
-    let actor = ActorConfig::new(EncoderConfig::new(64, 80)).init(&device);
-    let bytes = encode(&actor, &info(64, 80));
+    let (_, bytes) = snapshot(&paper(80, 64), &device);
     let file = safetensors::SafeTensors::deserialize(&bytes).unwrap();
-    let mut names = file.names();
-    names.sort();
+    let names = file.names();
     for expected in [
         "encoder.conv1.weight",
         "encoder.norm1.running_mean",
@@ -101,4 +218,24 @@ fn files_name_every_tensor_by_its_module_path() {
         file.tensor("encoder.fc.weight").unwrap().shape(),
         [64 * 8 * 10, 512]
     );
+    let (_, bytes) = snapshot(&set(SetShape::new([1280, 1024])), &device);
+    let file = safetensors::SafeTensors::deserialize(&bytes).unwrap();
+    let mut names = file.names();
+    names.sort();
+    assert_eq!(
+        names,
+        [
+            "encoder.fc1.bias",
+            "encoder.fc1.weight",
+            "encoder.fc2.bias",
+            "encoder.fc2.weight",
+            "head.fc1.bias",
+            "head.fc1.weight",
+            "head.fc2.bias",
+            "head.fc2.weight",
+            "head.out.bias",
+            "head.out.weight",
+        ]
+    );
+    assert_eq!(file.tensor("head.fc1.weight").unwrap().shape(), [130, 64]);
 }

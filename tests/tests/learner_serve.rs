@@ -5,8 +5,8 @@
 use std::path::{Path, PathBuf};
 use std::time::Duration;
 use tweezer_gym::{
-    Action, EnvConfig, EvalSummary, Greedy, Observation, Policy, Renderer, SplitMix64,
-    UniformRandom, VecEnv, evaluate,
+    Action, EnvConfig, EvalSummary, Greedy, Observation, Policy, SplitMix64, UniformRandom, VecEnv,
+    evaluate,
 };
 use tweezer_nets::NetworkPolicy;
 use tweezer_proto::pb::learner_client::LearnerClient;
@@ -236,8 +236,7 @@ fn mean_return(policy: &mut dyn Policy) -> f64 {
 }
 
 fn network(snapshot: &[u8]) -> NetworkPolicy {
-    let renderer = Renderer::for_config(&tiny_env()).unwrap();
-    NetworkPolicy::from_snapshot(snapshot, renderer, &burn::tensor::Device::flex())
+    NetworkPolicy::from_snapshot(snapshot, &tiny_env(), &burn::tensor::Device::flex())
         .unwrap()
         .0
 }

@@ -2,7 +2,7 @@
 //! fit the configured resolution.
 
 use burn::tensor::Device;
-use tweezer_nets::{ARCHITECTURE, ActorConfig, EncoderConfig, SnapshotInfo, encode};
+use tweezer_nets::{ActorConfig, Architecture, EncoderConfig, SnapshotInfo, encode};
 use tweezer_system_tests::{run, stderr_of_failure, stdout_of};
 
 #[test]
@@ -10,9 +10,10 @@ fn snapshots_are_evaluated_and_mismatches_refused() {
     let dir = tempfile::tempdir().unwrap();
     let actor = ActorConfig::new(EncoderConfig::new(64, 80)).init(&Device::flex());
     let info = SnapshotInfo {
-        architecture: ARCHITECTURE.into(),
-        height: 64,
-        width: 80,
+        architecture: Architecture::Paper {
+            height: 64,
+            width: 80,
+        },
         version: 1,
         training_step: 0,
     };

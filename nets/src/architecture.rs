@@ -1,0 +1,237 @@
+//! Which network a run trains and a snapshot holds, with every
+//! hyper-parameter that fixes its weights' shapes and the meaning of its
+//! inputs: what snapshot metadata, checkpoints and `[learner.network]`
+//! carry, and what loading compares.
+
+use serde::{Deserialize, Serialize};
+use std::fmt;
+
+/// The paper's CNN actor, as snapshots name it.
+pub const PAPER_ARCHITECTURE: &str = "tweezer-paper-actor-v1";
+
+/// The actor that reads sphere centres, as snapshots name it.
+pub const SET_ARCHITECTURE: &str = "tweezer-set-actor-v1";
+
+/// A network and the inputs it was built for.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "kind", rename_all = "snake_case", deny_unknown_fields)]
+pub enum Architecture {
+    /// The paper's CNN on rendered binary images.
+    Paper {
+        /// Image height, px.
+        height: usize,
+        /// Image width, px.
+        width: usize,
+    },
+    /// The set network on sphere centres.
+    Set(SetShape),
+}
+
+/// How a set pools its per-sphere features.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Pooling {
+    /// Masked max and mean, side by side.
+    #[default]
+    MaxMean,
+    /// Masked max only.
+    Max,
+    /// Masked mean only.
+    Mean,
+}
+
+impl Pooling {
+    /// Its name in configs and snapshot metadata.
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::MaxMean => "max_mean",
+            Self::Max => "max",
+            Self::Mean => "mean",
+        }
+    }
+
+    /// The pooling called `name`.
+    pub fn from_name(name: &str) -> Option<Self> {
+        [Self::MaxMean, Self::Max, Self::Mean]
+            .into_iter()
+            .find(|p| p.name() == name)
+    }
+
+    /// Pooled features per per-sphere feature.
+    pub fn factor(self) -> usize {
+        match self {
+            Self::MaxMean => 2,
+            Self::Max | Self::Mean => 1,
+        }
+    }
+}
+
+/// The set network's hyper-parameters and the field of view its inputs
+/// are scaled by.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SetShape {
+    /// Width of the per-sphere MLP's two layers.
+    pub sphere_hidden: usize,
+    /// Width of the two layers after pooling.
+    pub head_hidden: usize,
+    /// How the set is summarised.
+    pub pooling: Pooling,
+    /// Most spheres a set holds; a scene with more keeps the nearest.
+    pub max_spheres: usize,
+    /// The field of view (px) it was trained on: sphere positions are
+    /// scaled by half its width, whatever field a later scene spans.
+    pub fov_px: [u32; 2],
+}
+
+impl SetShape {
+    /// The default set network (the `lean` preset's) for a `fov_px` field:
+    /// 64-wide per-sphere and head layers, max and mean pooling, the 32
+    /// nearest spheres.
+    pub fn new(fov_px: [u32; 2]) -> Self {
+        Self {
+            sphere_hidden: 64,
+            head_hidden: 64,
+            pooling: Pooling::MaxMean,
+            max_spheres: 32,
+            fov_px,
+        }
+    }
+}
+
+impl Architecture {
+    /// The name snapshots carry.
+    pub fn name(&self) -> &'static str {
+        match self {
+            Self::Paper { .. } => PAPER_ARCHITECTURE,
+            Self::Set(_) => SET_ARCHITECTURE,
+        }
+    }
+
+    /// The image resolution `(height, width)` a CNN takes; none for sets.
+    pub fn image(&self) -> Option<(usize, usize)> {
+        match *self {
+            Self::Paper { height, width } => Some((height, width)),
+            Self::Set(_) => None,
+        }
+    }
+
+    /// What differs from `other`, field by field (empty when equal).
+    pub fn differences(&self, other: &Self) -> Vec<String> {
+        let (a, b) = (self.fields(), other.fields());
+        if self.name() != other.name() {
+            return vec![format!("architecture {} vs {}", self.name(), other.name())];
+        }
+        a.iter()
+            .zip(&b)
+            .filter(|(x, y)| x.1 != y.1)
+            .map(|(x, y)| format!("{} {} vs {}", x.0, x.1, y.1))
+            .collect()
+    }
+
+    /// Every hyper-parameter as (name, value), as snapshot metadata
+    /// stores them.
+    pub fn fields(&self) -> Vec<(&'static str, String)> {
+        match self {
+            Self::Paper { height, width } => {
+                vec![("height", height.to_string()), ("width", width.to_string())]
+            }
+            Self::Set(s) => vec![
+                ("sphere_hidden", s.sphere_hidden.to_string()),
+                ("head_hidden", s.head_hidden.to_string()),
+                ("pooling", s.pooling.name().to_string()),
+                ("max_spheres", s.max_spheres.to_string()),
+                ("fov_width", s.fov_px[0].to_string()),
+                ("fov_height", s.fov_px[1].to_string()),
+            ],
+        }
+    }
+
+    /// The architecture called `name` from its fields; `field` looks one
+    /// up. The error names the missing or malformed field.
+    pub fn from_fields<'a>(
+        name: &str,
+        field: impl Fn(&str) -> Option<&'a str>,
+    ) -> Result<Self, ArchitectureError> {
+        fn parse<'a, T: std::str::FromStr>(
+            field: &impl Fn(&str) -> Option<&'a str>,
+            name: &'static str,
+        ) -> Result<T, ArchitectureError> {
+            field(name)
+                .and_then(|v| v.parse().ok())
+                .ok_or(ArchitectureError::Field(name))
+        }
+        let shape = match name {
+            PAPER_ARCHITECTURE => Self::Paper {
+                height: parse(&field, "height")?,
+                width: parse(&field, "width")?,
+            },
+            SET_ARCHITECTURE => Self::Set(SetShape {
+                sphere_hidden: parse(&field, "sphere_hidden")?,
+                head_hidden: parse(&field, "head_hidden")?,
+                pooling: field("pooling")
+                    .and_then(Pooling::from_name)
+                    .ok_or(ArchitectureError::Field("pooling"))?,
+                max_spheres: parse(&field, "max_spheres")?,
+                fov_px: [parse(&field, "fov_width")?, parse(&field, "fov_height")?],
+            }),
+            other => return Err(ArchitectureError::Unknown(other.to_string())),
+        };
+        shape.validate()?;
+        Ok(shape)
+    }
+
+    /// Checks that every size is one a network can have.
+    pub fn validate(&self) -> Result<(), ArchitectureError> {
+        let sizes: Vec<(&'static str, usize)> = match self {
+            Self::Paper { height, width } => vec![("height", *height), ("width", *width)],
+            Self::Set(s) => vec![
+                ("sphere_hidden", s.sphere_hidden),
+                ("head_hidden", s.head_hidden),
+                ("max_spheres", s.max_spheres),
+                ("fov_width", s.fov_px[0] as usize),
+                ("fov_height", s.fov_px[1] as usize),
+            ],
+        };
+        for (name, value) in sizes {
+            if !(1..=MAX_SIZE).contains(&value) {
+                return Err(ArchitectureError::Size { name, value });
+            }
+        }
+        Ok(())
+    }
+}
+
+/// Largest size any hyper-parameter may have: room for any real network,
+/// and a bound on what a hostile snapshot can make a loader allocate.
+const MAX_SIZE: usize = 1 << 16;
+
+impl fmt::Display for Architecture {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        write!(f, "{}", self.name())?;
+        for (k, (name, value)) in self.fields().into_iter().enumerate() {
+            let sep = if k == 0 { " (" } else { ", " };
+            write!(f, "{sep}{name} {value}")?;
+        }
+        write!(f, ")")
+    }
+}
+
+/// An architecture that cannot be built.
+#[derive(Debug, thiserror::Error, PartialEq, Eq)]
+pub enum ArchitectureError {
+    /// No such architecture.
+    #[error("unknown architecture `{0}` (known: {PAPER_ARCHITECTURE}, {SET_ARCHITECTURE})")]
+    Unknown(String),
+    /// A hyper-parameter is missing or malformed.
+    #[error("architecture field `{0}` is missing or malformed")]
+    Field(&'static str),
+    /// A size is out of range.
+    #[error("architecture field `{name}` = {value}: must lie in [1, 65536]")]
+    Size {
+        /// The field.
+        name: &'static str,
+        /// Its value.
+        value: usize,
+    },
+}

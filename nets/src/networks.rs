@@ -1,0 +1,210 @@
+//! What training and inference need of an architecture, whichever it is:
+//! fresh networks, the input tensors of a batch of observations, and the
+//! forward passes. TD3 and the policies are written once against
+//! [`Networks`]; [`PaperNetworks`] and [`SetNetworks`] implement it.
+
+use crate::actor::{Actor, ActorConfig};
+use crate::architecture::{Architecture, SetShape};
+use crate::critic::{Critic, CriticConfig};
+use crate::encoder::EncoderConfig;
+use crate::images::render_images;
+use crate::set_actor::{SetActor, SetActorConfig};
+use crate::set_critic::{SetCritic, SetCriticConfig};
+use crate::set_encoder::SetEncoderConfig;
+use crate::spheres::{SetBatch, SphereSets};
+use burn::module::{Module, ModuleDisplay};
+use burn::tensor::{Device, Tensor};
+use tweezer_gym::Renderer;
+
+/// An architecture's networks and how observations become their inputs.
+pub trait Networks: Clone + Send + Sync + 'static {
+    /// What the networks read of a batch of observations besides the
+    /// target vector.
+    type Input: Clone + Send;
+    /// The policy network.
+    type Actor: Module + ModuleDisplay;
+    /// The action-value network.
+    type Critic: Module + ModuleDisplay;
+
+    /// The architecture, as snapshots and checkpoints record it.
+    fn architecture(&self) -> Architecture;
+
+    /// A fresh actor on `device`.
+    fn actor(&self, device: &Device) -> Self::Actor;
+
+    /// A fresh critic on `device`.
+    fn critic(&self, device: &Device) -> Self::Critic;
+
+    /// The input of each observation's sphere centres, as one batch.
+    fn input<'a>(
+        &self,
+        centres: impl ExactSizeIterator<Item = &'a [[f32; 2]]>,
+        device: &Device,
+    ) -> Self::Input;
+
+    /// `input` on a device without autodiff.
+    fn valid(input: Self::Input) -> Self::Input;
+
+    /// Actions, `[batch, 2]` in [-1, 1].
+    fn act(actor: &Self::Actor, input: Self::Input, vector: Tensor<2>) -> Tensor<2>;
+
+    /// The critic's features of `input`: what does not depend on the
+    /// vector or the action.
+    fn features(critic: &Self::Critic, input: Self::Input) -> Tensor<2>;
+
+    /// Q, `[batch, 1]`, from the critic's features.
+    fn value(
+        critic: &Self::Critic,
+        features: Tensor<2>,
+        vector: Tensor<2>,
+        action: Tensor<2>,
+    ) -> Tensor<2>;
+}
+
+/// The paper's CNNs on images of the renderer's resolution.
+#[derive(Clone, Debug)]
+pub struct PaperNetworks {
+    renderer: Renderer,
+}
+
+impl PaperNetworks {
+    /// CNNs for the images `renderer` draws.
+    pub fn new(renderer: Renderer) -> Self {
+        Self { renderer }
+    }
+
+    fn encoder(&self) -> EncoderConfig {
+        EncoderConfig::new(self.renderer.height(), self.renderer.width())
+    }
+}
+
+impl Networks for PaperNetworks {
+    type Input = Tensor<4>;
+    type Actor = Actor;
+    type Critic = Critic;
+
+    fn architecture(&self) -> Architecture {
+        Architecture::Paper {
+            height: self.renderer.height(),
+            width: self.renderer.width(),
+        }
+    }
+
+    fn actor(&self, device: &Device) -> Actor {
+        ActorConfig::new(self.encoder()).init(device)
+    }
+
+    fn critic(&self, device: &Device) -> Critic {
+        CriticConfig::new(self.encoder()).init(device)
+    }
+
+    fn input<'a>(
+        &self,
+        centres: impl ExactSizeIterator<Item = &'a [[f32; 2]]>,
+        device: &Device,
+    ) -> Tensor<4> {
+        render_images(&self.renderer, centres, device)
+    }
+
+    fn valid(input: Tensor<4>) -> Tensor<4> {
+        input.valid()
+    }
+
+    fn act(actor: &Actor, input: Tensor<4>, vector: Tensor<2>) -> Tensor<2> {
+        actor.forward(input, vector)
+    }
+
+    fn features(critic: &Critic, input: Tensor<4>) -> Tensor<2> {
+        critic.encode(input)
+    }
+
+    fn value(
+        critic: &Critic,
+        features: Tensor<2>,
+        vector: Tensor<2>,
+        action: Tensor<2>,
+    ) -> Tensor<2> {
+        critic.forward_features(features, vector, action)
+    }
+}
+
+/// The set networks on the sphere centres of a field of view.
+#[derive(Clone, Debug)]
+pub struct SetNetworks {
+    shape: SetShape,
+    sets: SphereSets,
+}
+
+impl SetNetworks {
+    /// Networks of `shape` seeing scenes of a `fov_px` field (which may be
+    /// wider than the one `shape` was trained on: more centres, the same
+    /// scale).
+    pub fn new(shape: SetShape, fov_px: [u32; 2]) -> Self {
+        Self {
+            sets: SphereSets::new(&shape, fov_px),
+            shape,
+        }
+    }
+
+    fn encoder(&self) -> SetEncoderConfig {
+        SetEncoderConfig::new()
+            .with_hidden(self.shape.sphere_hidden)
+            .with_pooling(self.shape.pooling)
+    }
+
+    /// How observations become sets.
+    pub fn sets(&self) -> &SphereSets {
+        &self.sets
+    }
+}
+
+impl Networks for SetNetworks {
+    type Input = SetBatch;
+    type Actor = SetActor;
+    type Critic = SetCritic;
+
+    fn architecture(&self) -> Architecture {
+        Architecture::Set(self.shape)
+    }
+
+    fn actor(&self, device: &Device) -> SetActor {
+        SetActorConfig::new(self.encoder())
+            .with_hidden(self.shape.head_hidden)
+            .init(device)
+    }
+
+    fn critic(&self, device: &Device) -> SetCritic {
+        SetCriticConfig::new(self.encoder())
+            .with_hidden(self.shape.head_hidden)
+            .init(device)
+    }
+
+    fn input<'a>(
+        &self,
+        centres: impl ExactSizeIterator<Item = &'a [[f32; 2]]>,
+        device: &Device,
+    ) -> SetBatch {
+        self.sets.batch(centres, device)
+    }
+
+    fn valid(input: SetBatch) -> SetBatch {
+        input.valid()
+    }
+
+    fn act(actor: &SetActor, input: SetBatch, vector: Tensor<2>) -> Tensor<2> {
+        actor.forward(input, vector)
+    }
+
+    fn features(critic: &SetCritic, input: SetBatch) -> Tensor<2> {
+        critic.encode(input)
+    }
+
+    fn value(
+        critic: &SetCritic,
+        features: Tensor<2>,
+        vector: Tensor<2>,
+        action: Tensor<2>,
+    ) -> Tensor<2> {
+        critic.forward_features(features, vector, action)
+    }
+}
