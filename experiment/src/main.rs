@@ -33,8 +33,10 @@ enum Command {
     /// `--config` names a train file (`[env]`, `[learner]`, `[actor]`,
     /// `[train]`) instead of a preset.
     Train {
-        /// `quick` (learns on a 2-core laptop in 30 minutes) or `paper`
-        /// (the settings of `docs/spec.md`; for a GPU or a cluster).
+        /// `lean` (the set network at the full field of view, for a 2-core
+        /// laptop), `quick` (the paper's CNN at 40 x 32, for a 2-core
+        /// laptop) or `paper` (the settings of `docs/spec.md`; for a GPU or
+        /// a cluster).
         #[arg(long, conflicts_with = "config")]
         preset: Option<String>,
         /// Minutes of training (0: until Ctrl-C) instead of `train.minutes`.

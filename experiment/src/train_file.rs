@@ -8,11 +8,12 @@ use tweezer_config::{ConfigError, read_toml};
 use tweezer_gym::{EnvConfig, Seeds};
 use tweezer_learner::config::LearnerConfig;
 
-/// The presets, by name: the paper's settings (`docs/spec.md`), and a CPU-sized
-/// variant.
-const PRESETS: [(&str, &str); 2] = [
+/// The presets, by name: the paper's settings (`docs/spec.md`), its CNN sized
+/// for a 2-core CPU, and the set network at the full field of view.
+const PRESETS: [(&str, &str); 3] = [
     ("paper", include_str!("../presets/paper.toml")),
     ("quick", include_str!("../presets/quick.toml")),
+    ("lean", include_str!("../presets/lean.toml")),
 ];
 
 /// Keys of the `[actor]` table that `experiment train` sets for each actor.
@@ -186,7 +187,13 @@ mod tests {
         assert_ne!(quick.env.image, paper.env.image);
         assert!(quick.train.minutes > 0.0);
         let err = TrainFile::preset("fast").unwrap_err().to_string();
-        assert!(err.contains("`paper` or `quick`"), "{err}");
+        assert!(err.contains("`paper` or `quick` or `lean`"), "{err}");
+        let lean = TrainFile::preset("lean").unwrap();
+        assert_eq!(lean.env, EnvConfig::default(), "SPEC's environment");
+        assert!(matches!(
+            lean.learner.network,
+            tweezer_learner::config::NetworkConfig::Set(_)
+        ));
     }
 
     #[test]

@@ -62,17 +62,23 @@ fn sampled_batches_become_sets_without_rendering() {
     let batch = minibatch_tensors(&sampled, &networks, &Device::flex());
     let longest = sampled.centres.iter().map(Vec::len).max().unwrap();
     assert!(longest > 0, "a dense field shows spheres");
-    assert_eq!(batch.input.spheres.dims(), [6, longest, 3]);
-    let features: Vec<f32> = batch.input.spheres.into_data().try_to_vec().unwrap();
-    let mask: Vec<f32> = batch.input.mask.into_data().try_to_vec().unwrap();
+    let set = batch.input;
+    assert_eq!((set.len(), set.width), (6, longest));
+    let features: Vec<f32> = set.spheres.into_data().try_to_vec().unwrap();
+    let slots: Vec<i64> = set.slots.into_data().convert::<i64>().try_to_vec().unwrap();
+    let counts: Vec<f32> = set.counts.into_data().try_to_vec().unwrap();
+    let padding = (features.len() / 3) as i64;
     for (i, centres) in sampled.centres.iter().enumerate() {
         let expected = networks.sets().features(centres);
+        assert_eq!(counts[i], expected.len().max(1) as f32);
         for k in 0..longest {
-            let row = i * longest + k;
-            let got = &features[row * 3..row * 3 + 3];
+            let slot = slots[i * longest + k];
             match expected.get(k) {
-                Some(f) => assert_eq!((got, mask[row]), (&f[..], 1.0)),
-                None => assert_eq!((got, mask[row]), (&[0.0; 3][..], 0.0)),
+                Some(f) => {
+                    let row = slot as usize;
+                    assert_eq!(&features[row * 3..row * 3 + 3], &f[..]);
+                }
+                None => assert_eq!(slot, padding),
             }
         }
     }

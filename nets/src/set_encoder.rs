@@ -1,8 +1,9 @@
 //! The permutation-invariant encoder of a sphere set: a shared per-sphere
-//! MLP, then masked pooling (max and mean, or either alone). Per-sphere
-//! features pass ReLU last, so they are never negative: padding (zeroed by
-//! the mask) can neither win the max nor, divided out, move the mean, and
-//! an empty set encodes as zeros.
+//! MLP on the batch's real spheres, then pooling over each set (max and
+//! mean, or either alone). Per-sphere features pass ReLU last, so they are
+//! never negative: padding (zeros) can neither win the max nor move the
+//! sum the mean divides by the set's size, and an empty set encodes as
+//! zeros.
 
 use crate::architecture::Pooling;
 use crate::spheres::{SPHERE_FEATURES, SetBatch};
@@ -50,27 +51,28 @@ impl SetEncoderConfig {
 
 impl SetEncoder {
     /// # Shapes
-    /// - `set.spheres`: `[batch, n, 3]`, `set.mask`: `[batch, n, 1]`
+    /// - `set`: see [`SetBatch`]: `[spheres, 3]` packed, `batch` sets of
+    ///   up to `width`
     /// - output: `[batch, hidden]`, or `[batch, 2 * hidden]` for max and
     ///   mean (max first)
     pub fn forward(&self, set: SetBatch) -> Tensor<2> {
-        let [batch, n, features] = set.spheres.dims();
-        // One matrix product over every sphere of the batch.
-        let x = set.spheres.reshape([batch * n, features]); // [batch n, 3]
-        let x = relu(self.fc1.forward(x)); // [batch n, hidden]
-        let x = relu(self.fc2.forward(x)); // [batch n, hidden]
-        let hidden = x.dims()[1];
-        let x = x.reshape([batch, n, hidden]) * set.mask.clone(); // [batch, n, hidden]
-        let mean = || {
-            let count = set.mask.clone().sum_dim(1).clamp_min(1.0); // [batch, 1, 1]
-            x.clone().sum_dim(1) / count // [batch, 1, hidden]
-        };
-        let pooled = match self.pooling {
-            Pooling::MaxMean => Tensor::cat(vec![x.clone().max_dim(1), mean()], 2),
-            Pooling::Max => x.clone().max_dim(1),
+        let (batch, width) = (set.len(), set.width);
+        // The MLP on real spheres only, one matrix product per layer.
+        let x = relu(self.fc1.forward(set.spheres)); // [spheres, hidden]
+        let x = relu(self.fc2.forward(x)); // [spheres, hidden]
+        let [_, hidden] = x.dims();
+        // Padding reads an appended zero row: never above a ReLU output,
+        // nothing added to a sum.
+        let zero = Tensor::<2>::zeros([1, hidden], &x.device());
+        let x = Tensor::cat(vec![x, zero], 0) // [spheres + 1, hidden]
+            .select(0, set.slots) // [batch width, hidden]
+            .reshape([batch, width, hidden]); // [batch, width, hidden]
+        let mean = || x.clone().sum_dim(1).reshape([batch, hidden]) / set.counts.clone(); // [batch, hidden]
+        let max = || x.clone().max_dim(1).reshape([batch, hidden]); // [batch, hidden]
+        match self.pooling {
+            Pooling::MaxMean => Tensor::cat(vec![max(), mean()], 1), // [batch, 2 hidden]
+            Pooling::Max => max(),
             Pooling::Mean => mean(),
-        }; // [batch, 1, factor * hidden]
-        let width = pooled.dims()[2];
-        pooled.reshape([batch, width]) // [batch, factor * hidden]
+        }
     }
 }

@@ -1,12 +1,12 @@
 //! Observations → the padded sphere-set tensors the set networks take:
 //! each free sphere's position relative to the trap (the FOV centre),
 //! scaled by half the width of the field the network was trained on, and
-//! its distance, with a mask that marks real spheres. No rendering: the
+//! its distance, packed with where each lands in its set. No rendering: the
 //! replay's centres go in as they are.
 
 use crate::architecture::SetShape;
 use burn::module::Module;
-use burn::tensor::{Device, Tensor, TensorData};
+use burn::tensor::{Device, Int, Tensor, TensorData};
 
 /// Features per sphere: x and y relative to the trap, and distance.
 pub const SPHERE_FEATURES: usize = 3;
@@ -22,14 +22,22 @@ pub struct SphereSets {
     max_spheres: usize,
 }
 
-/// A batch of padded sets.
+/// A batch of sets: every sphere of the batch packed in one matrix (the
+/// per-sphere MLP runs on real spheres only), and where each lands in the
+/// padded `[batch, width]` layout that pooling reads.
 #[derive(Clone, Debug)]
 pub struct SetBatch {
-    /// `[batch, n, SPHERE_FEATURES]`, zero where padded; `n` is the
-    /// largest set of the batch (at least 1, at most `max_spheres`).
-    pub spheres: Tensor<3>,
-    /// `[batch, n, 1]`: 1 for a sphere, 0 for padding.
-    pub mask: Tensor<3>,
+    /// `[spheres, SPHERE_FEATURES]`: every sphere of the batch, in order
+    /// (one row of zeros, which no slot reads, when the batch has none).
+    pub spheres: Tensor<2>,
+    /// `[batch width]` (Int): for each padded slot, its row in `spheres`,
+    /// or `spheres`' row count for padding (a zero row pooling appends).
+    pub slots: Tensor<1, Int>,
+    /// `[batch, 1]`: spheres per set, at least 1 (an empty set's sum is
+    /// zero whatever it is divided by).
+    pub counts: Tensor<2>,
+    /// Slots per set: the largest set of the batch (at least 1).
+    pub width: usize,
 }
 
 impl SetBatch {
@@ -37,8 +45,19 @@ impl SetBatch {
     pub fn valid(self) -> Self {
         Self {
             spheres: self.spheres.valid(),
-            mask: self.mask.valid(),
+            counts: self.counts.valid(),
+            ..self
         }
+    }
+
+    /// Sets in the batch.
+    pub fn len(&self) -> usize {
+        self.counts.dims()[0]
+    }
+
+    /// Whether the batch holds no sets.
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
     }
 }
 
@@ -88,20 +107,28 @@ impl SphereSets {
         device: &Device,
     ) -> SetBatch {
         let sets: Vec<_> = centres.map(|c| self.features(c)).collect();
-        let n = sets.len();
-        let m = sets.iter().map(Vec::len).max().unwrap_or(0).max(min_len);
-        let mut features = vec![0f32; n * m * SPHERE_FEATURES];
-        let mut mask = vec![0f32; n * m];
+        let width = sets.iter().map(Vec::len).max().unwrap_or(0).max(min_len);
+        let packed = sets.iter().map(Vec::len).sum::<usize>().max(1);
+        let mut features = Vec::with_capacity(packed * SPHERE_FEATURES);
+        let mut slots = vec![packed as i64; sets.len() * width];
+        let mut counts = Vec::with_capacity(sets.len());
         for (b, set) in sets.iter().enumerate() {
             for (k, f) in set.iter().enumerate() {
-                let row = b * m + k;
-                features[row * SPHERE_FEATURES..(row + 1) * SPHERE_FEATURES].copy_from_slice(f);
-                mask[row] = 1.0;
+                slots[b * width + k] = (features.len() / SPHERE_FEATURES) as i64;
+                features.extend_from_slice(f);
             }
+            counts.push(set.len().max(1) as f32);
         }
+        features.resize(packed * SPHERE_FEATURES, 0.0);
+        let n = sets.len();
         SetBatch {
-            spheres: Tensor::from_data(TensorData::new(features, [n, m, SPHERE_FEATURES]), device),
-            mask: Tensor::from_data(TensorData::new(mask, [n, m, 1]), device),
+            spheres: Tensor::from_data(
+                TensorData::new(features, [packed, SPHERE_FEATURES]),
+                device,
+            ),
+            slots: Tensor::from_data(TensorData::new(slots, [n * width]), device),
+            counts: Tensor::from_data(TensorData::new(counts, [n, 1]), device),
+            width,
         }
     }
 }

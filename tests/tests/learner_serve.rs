@@ -64,6 +64,8 @@ struct Learner {
     process: Running,
     addr: String,
     log: PathBuf,
+    /// The environment its actors step.
+    env: EnvConfig,
 }
 
 impl Learner {
@@ -81,12 +83,13 @@ impl Learner {
             process: Running::new(child),
             addr,
             log,
+            env: tiny_env(),
         }
     }
 
     /// A new run in `run` with the config file `config`.
     fn fresh(dir: &Path, config: &Path, run: &Path) -> Self {
-        Self::start(
+        let mut learner = Self::start(
             dir,
             &[
                 "--config",
@@ -94,7 +97,10 @@ impl Learner {
                 "--run-dir",
                 run.to_str().unwrap(),
             ],
-        )
+        );
+        let file: toml::Table = toml::from_str(&std::fs::read_to_string(config).unwrap()).unwrap();
+        learner.env = file["env"].clone().try_into().unwrap();
+        learner
     }
 
     /// A client with the actors' token (which may also read).
@@ -141,7 +147,7 @@ async fn feed_until(
     done: impl Fn(&pb::LearnerStatus) -> bool,
 ) -> pb::LearnerStatus {
     let mut client = learner.client().await;
-    let mut envs = VecEnv::new(&tiny_env(), 8, 11).unwrap();
+    let mut envs = VecEnv::new(&learner.env, 8, 11).unwrap();
     let mut rng = SplitMix64::new(5);
     let (tx, rx) = tokio::sync::mpsc::channel(2);
     let mut acks = client
@@ -202,8 +208,8 @@ async fn feed_until(
 
 /// Cosine between the actor's action and the target vector, for target
 /// vectors in eight directions with nothing else in view.
-fn alignment(snapshot: &[u8]) -> Vec<f32> {
-    let mut policy = network(snapshot);
+fn alignment(snapshot: &[u8], env: &EnvConfig) -> Vec<f32> {
+    let mut policy = network(snapshot, env);
     let observations: Vec<Observation> = (0..8)
         .map(|k| {
             let angle = k as f32 * std::f32::consts::FRAC_PI_4 + 0.3;
@@ -227,16 +233,15 @@ fn alignment(snapshot: &[u8]) -> Vec<f32> {
         .collect()
 }
 
-/// Mean return of a policy over 32 held-out episodes of the tiny
-/// environment.
-fn mean_return(policy: &mut dyn Policy) -> f64 {
+/// Mean return of a policy over 32 held-out episodes of `env`.
+fn mean_return(policy: &mut dyn Policy, env: &EnvConfig) -> f64 {
     let seeds: Vec<u64> = (100_000..100_032).collect();
-    let episodes = evaluate(&tiny_env(), policy, &seeds, 32).unwrap();
+    let episodes = evaluate(env, policy, &seeds, 32).unwrap();
     EvalSummary::of(&episodes).mean_return
 }
 
-fn network(snapshot: &[u8]) -> NetworkPolicy {
-    NetworkPolicy::from_snapshot(snapshot, &tiny_env(), &burn::tensor::Device::flex())
+fn network(snapshot: &[u8], env: &EnvConfig) -> NetworkPolicy {
+    NetworkPolicy::from_snapshot(snapshot, env, &burn::tensor::Device::flex())
         .unwrap()
         .0
 }
@@ -286,13 +291,13 @@ async fn learns_to_point_at_the_target_over_grpc() {
             .await
             .unwrap();
     assert_eq!(info.version, status.latest_snapshot);
-    let cosines = alignment(&latest);
+    let cosines = alignment(&latest, &learner.env);
     let mean = cosines.iter().sum::<f32>() / cosines.len() as f32;
     assert!(
         mean > 0.8 && cosines.iter().all(|&c| c > 0.5),
         "the trained actor should point at the target: cosines {cosines:?}"
     );
-    let before = alignment(&untrained.1);
+    let before = alignment(&untrained.1, &learner.env);
     assert!(
         before.iter().sum::<f32>() / 8.0 < 0.5,
         "untrained cosines {before:?}"
@@ -302,9 +307,9 @@ async fn learns_to_point_at_the_target_over_grpc() {
     // interleaving of inserts and updates varies with the machine's load),
     // random actions and the untrained network do not (~ -200: the time
     // penalty, little carry).
-    let trained = mean_return(&mut network(&latest));
-    let random = mean_return(&mut UniformRandom::new(5));
-    let untrained = mean_return(&mut network(&untrained.1));
+    let trained = mean_return(&mut network(&latest, &learner.env), &learner.env);
+    let random = mean_return(&mut UniformRandom::new(5), &learner.env);
+    let untrained = mean_return(&mut network(&untrained.1, &learner.env), &learner.env);
     assert!(
         trained > random + 500.0 && trained > untrained + 500.0,
         "mean returns: trained {trained:.0}, random {random:.0}, untrained {untrained:.0}"
@@ -333,6 +338,79 @@ async fn learns_to_point_at_the_target_over_grpc() {
     }
     assert!(run.join("snapshots/best.safetensors").exists());
     assert!(run.join("config.toml").exists());
+}
+
+/// The tiny task for the set network, with free spheres in the field: it
+/// must learn to point at the target from inputs that list them.
+fn tiny_set_config() -> String {
+    TINY.replace(
+        "min_free_spheres = 0\nmax_free_spheres = 0",
+        "min_free_spheres = 200\nmax_free_spheres = 200",
+    )
+    .replace(
+        "[learner.td3]",
+        "[learner.network]\nkind = \"set\"\n[learner.td3]",
+    )
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_set_network_learns_to_point_at_the_target_over_grpc() {
+    let (dir, run, config) = run_dir();
+    std::fs::write(&config, tiny_set_config()).unwrap();
+    let learner = Learner::fresh(dir.path(), &config, &run);
+    let env = learner.env.clone();
+    assert_eq!(env.min_free_spheres, 200);
+    let mut client = learner.client().await;
+    let (info, untrained) =
+        download_snapshot(&mut client, Selector::Tag(pb::SnapshotTag::Latest.into()))
+            .await
+            .unwrap();
+    assert_eq!(info.architecture, "tweezer-set-actor-v1");
+    assert_eq!((info.image_width, info.image_height), (0, 0));
+    assert!(info.network.contains("max_spheres 32"), "{info:?}");
+
+    let status = feed(&learner, "actor-0", 2_500).await;
+    assert!(status.episodes > 0, "{status:?}");
+    let (_, latest) = download_snapshot(&mut client, Selector::Tag(pb::SnapshotTag::Latest.into()))
+        .await
+        .unwrap();
+    let cosines = alignment(&latest, &env);
+    let mean = cosines.iter().sum::<f32>() / cosines.len() as f32;
+    assert!(
+        mean > 0.8 && cosines.iter().all(|&c| c > 0.5),
+        "the trained set actor should point at the target: cosines {cosines:?}"
+    );
+    let trained = mean_return(&mut network(&latest, &env), &env);
+    let random = mean_return(&mut UniformRandom::new(5), &env);
+    let untrained = mean_return(&mut network(&untrained, &env), &env);
+    assert!(
+        trained > random + 300.0 && trained > untrained + 300.0,
+        "mean returns: trained {trained:.0}, random {random:.0}, untrained {untrained:.0}"
+    );
+    let (exit, log) = learner.stop();
+    assert!(exit.success(), "{log}");
+    // The checkpoint names the networks: resuming it with the CNN's
+    // config is refused, saying what differs.
+    let cnn = dir.path().join("cnn.toml");
+    std::fs::write(&cnn, TINY).unwrap();
+    let security = credentials().file("server");
+    let refused = tweezer_system_tests::run(
+        "learner",
+        &[
+            "serve",
+            "--resume",
+            run.to_str().unwrap(),
+            "--config",
+            cnn.to_str().unwrap(),
+            "--security",
+            &security,
+        ],
+    );
+    let err = stderr_of_failure(&refused);
+    assert!(
+        err.contains("architecture tweezer-set-actor-v1 vs tweezer-paper-actor-v1"),
+        "{err}"
+    );
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
