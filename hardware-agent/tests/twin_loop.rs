@@ -151,7 +151,7 @@ fn a_snapshot_drives_the_twin_and_a_mismatched_one_is_refused() {
     let (ok, _, stderr) = agent(&args(&paper).each_ref().map(String::as_str));
     assert!(!ok);
     assert!(
-        stderr.contains("refusing the policy") && stderr.contains("40x32"),
+        stderr.contains("refusing the policy") && stderr.contains("width 40 vs 320"),
         "{stderr}"
     );
 }
