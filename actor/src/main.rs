@@ -123,6 +123,9 @@ fn print_summary(summary: &EvalSummary, json: bool) -> anyhow::Result<()> {
         println!("timeout rate    {:.3}", summary.timeout_rate);
         println!("mean return     {:.1}", summary.mean_return);
         println!("mean steps      {:.1}", summary.mean_steps);
+        if let Some(steps) = summary.mean_steps_success {
+            println!("  of successes  {steps:.1}");
+        }
     }
     Ok(())
 }

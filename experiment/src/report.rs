@@ -306,7 +306,8 @@ pub fn write(runs: &[PathBuf], out: &Path, options: &ReportOptions) -> anyhow::R
 
     let seeds = describe_seeds(&options.seeds);
     let md = out.join("eval.md");
-    std::fs::write(&md, markdown(&rows, &seeds))
+    let straight = (runs[0].env.ideal_steps(), runs[0].env.ideal_return());
+    std::fs::write(&md, markdown(&rows, &seeds, straight))
         .with_context(|| format!("cannot write {}", md.display()))?;
     files.push(md);
     let json = out.join("eval.json");
@@ -337,15 +338,16 @@ fn describe_seeds(seeds: &[u64]) -> String {
     }
 }
 
-/// The table in Markdown.
-fn markdown(rows: &[EvalRow], seeds: &str) -> String {
+/// The table in Markdown, and the ideal straight run's (steps, return) of
+/// the first run's environment.
+fn markdown(rows: &[EvalRow], seeds: &str, (steps, ideal): (f64, f64)) -> String {
     let mut md = format!(
-        "Evaluation on episode seeds {seeds}\n\n| setting | policy | chosen by | run | episodes | success | collision | timeout | mean return | mean steps |\n| --- | --- | --- | --- | ---: | ---: | ---: | ---: | ---: | ---: |\n"
+        "Evaluation on episode seeds {seeds}\n\n| setting | policy | chosen by | run | episodes | success | collision | timeout | mean return | mean steps | steps to success |\n| --- | --- | --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: |\n"
     );
     for r in rows {
         let s = &r.summary;
         md.push_str(&format!(
-            "| {} | {} | {} | {} | {} | {:.3} | {:.3} | {:.3} | {:.1} | {:.1} |\n",
+            "| {} | {} | {} | {} | {} | {:.3} | {:.3} | {:.3} | {:.1} | {:.1} | {} |\n",
             r.label,
             r.policy,
             r.chosen_by,
@@ -355,9 +357,14 @@ fn markdown(rows: &[EvalRow], seeds: &str) -> String {
             s.collision_rate,
             s.timeout_rate,
             s.mean_return,
-            s.mean_steps
+            s.mean_steps,
+            s.mean_steps_success
+                .map_or_else(|| "—".to_string(), |v| format!("{v:.1}"))
         ));
     }
+    md.push_str(&format!(
+        "\nThe ideal straight run to the target (mean over target angles, nothing in the way): {steps:.1} steps, return {ideal:.1}.\n"
+    ));
     md
 }
 

@@ -24,6 +24,8 @@ pub struct EvalSummary {
     pub mean_return: f64,
     /// Mean episode length in steps.
     pub mean_steps: f64,
+    /// Mean length of the successful episodes (none without one).
+    pub mean_steps_success: Option<f64>,
 }
 
 impl EvalSummary {
@@ -40,6 +42,14 @@ impl EvalSummary {
             timeout_rate: rate(Outcome::Timeout),
             mean_return: episodes.iter().map(|e| e.episode_return).sum::<f64>() / denominator,
             mean_steps: episodes.iter().map(|e| f64::from(e.steps)).sum::<f64>() / denominator,
+            mean_steps_success: {
+                let won: Vec<f64> = episodes
+                    .iter()
+                    .filter(|e| e.outcome == Outcome::Success)
+                    .map(|e| f64::from(e.steps))
+                    .collect();
+                (!won.is_empty()).then(|| won.iter().sum::<f64>() / won.len() as f64)
+            },
         }
     }
 }

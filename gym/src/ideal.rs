@@ -7,20 +7,35 @@ use crate::config::{EnvConfig, RewardComponent};
 const ANGLES: u32 = 3600;
 
 impl EnvConfig {
-    /// Mean return of the ideal episode over target angles: the stage moves
-    /// straight at the target as fast as its per-axis speed allows, lands
-    /// within the success radius in the fewest steps, and meets no sphere
-    /// (for the usual negative time reward).
+    /// The ideal episode at each of [`ANGLES`] target angles: the stage
+    /// moves straight at the target as fast as its per-axis speed allows
+    /// and lands within the success radius in the fewest steps; (steps,
+    /// px per step).
+    fn straight_runs(&self) -> impl Iterator<Item = (f64, f64)> + '_ {
+        (0..ANGLES).map(|k| {
+            let angle = f64::from(k) * std::f64::consts::TAU / f64::from(ANGLES);
+            let speed = self.stage_speed_px / angle.cos().abs().max(angle.sin().abs());
+            let steps = ((self.target_distance_px - self.success_radius_px) / speed)
+                .ceil()
+                .max(1.0);
+            (steps, speed)
+        })
+    }
+
+    /// Mean steps of the ideal episode over target angles: what a policy's
+    /// successful episodes take at best.
+    pub fn ideal_steps(&self) -> f64 {
+        self.straight_runs().map(|(steps, _)| steps).sum::<f64>() / f64::from(ANGLES)
+    }
+
+    /// Mean return of the ideal episode over target angles, meeting no
+    /// sphere (for the usual negative time reward).
     pub fn ideal_return(&self) -> f64 {
         let on = |component| self.reward_on(component);
         let distance = self.target_distance_px;
-        let total: f64 = (0..ANGLES)
-            .map(|k| {
-                let angle = f64::from(k) * std::f64::consts::TAU / f64::from(ANGLES);
-                let speed = self.stage_speed_px / angle.cos().abs().max(angle.sin().abs());
-                let steps = ((distance - self.success_radius_px) / speed)
-                    .ceil()
-                    .max(1.0);
+        let total: f64 = self
+            .straight_runs()
+            .map(|(steps, speed)| {
                 // The last step starts outside the success radius.
                 let mut carried = distance.min(distance - self.success_radius_px + speed);
                 let mut episode = 0.0;
@@ -54,6 +69,8 @@ mod tests {
         let diagonal = 1000.0 + 69.0 * 10.0 * 2f64.sqrt() - 69.0;
         let ideal = config.ideal_return();
         assert!(axis < ideal && ideal < diagonal, "{ideal}");
+        let steps = config.ideal_steps();
+        assert!(69.0 < steps && steps < 98.0, "{steps}");
     }
 
     #[test]

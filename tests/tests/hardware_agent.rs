@@ -72,7 +72,7 @@ fn the_agent_drives_the_twin_with_a_learner_snapshot_and_refuses_what_does_not_f
     );
     let err = stderr_of_failure(&agent("wider.toml", [40, 32], "latest"));
     assert!(
-        err.contains("refusing the policy") && err.contains("20x16"),
+        err.contains("refusing the policy") && err.contains("width 20 vs 40"),
         "{err}"
     );
     assert!(stop(learner).0.success());

@@ -42,7 +42,10 @@ fn snapshots_are_evaluated_and_mismatches_refused() {
         "actor",
         &["eval", "--policy", snapshot, "--seeds", "0..2"],
     ));
-    assert!(err.contains("80x64") && err.contains("320x256"), "{err}");
+    assert!(
+        err.contains("height 64 vs 256") && err.contains("width 80 vs 320"),
+        "{err}"
+    );
 
     let garbage = dir.path().join("garbage.safetensors");
     std::fs::write(&garbage, b"not a snapshot at all").unwrap();
