@@ -14,8 +14,8 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 use tokio::net::TcpListener;
 use tweezer_config::ConfigError;
-use tweezer_gym::{EnvConfig, RandomSteps, Renderer, SplitMix64, StepBounds};
-use tweezer_nets::{Architecture, Networks, PaperNetworks, SetNetworks};
+use tweezer_gym::{EnvConfig, RandomSteps, SplitMix64, StepBounds};
+use tweezer_nets::{Networks, WithNetworks};
 use tweezer_proto::pb;
 use tweezer_proto::pb::learner_client::LearnerClient;
 use tweezer_rpc::{ClientSecurity, LoopbackCredentials, Security, ServerSecurity};
@@ -67,57 +67,68 @@ struct NetworkTimes {
     updates_timed: usize,
 }
 
-/// Times TD3 updates and inference of `networks` on batches of `replay`.
-fn time_networks<N: Networks>(
-    networks: N,
-    replay: &Replay,
+/// Times TD3 updates and inference of the networks on batches of `replay`.
+struct TimeNetworks<'a> {
+    replay: &'a Replay,
     batch_size: usize,
     updates: usize,
-    device: &Device,
-) -> anyhow::Result<NetworkTimes> {
-    let training = device.clone().autodiff();
-    let mut td3 = Td3::new(Td3Config::default(), networks.clone(), &training)?;
-    let mut rng = SplitMix64::new(7);
-    let mut sample = |n: usize, on: &Device| {
-        let sampled = replay.sample(n, &mut rng).expect("the replay is full");
-        minibatch_tensors(&sampled, &networks, on)
-    };
-    // Two warm-up updates, then `updates` timed ones, each step timed on
-    // its own; sampling and building the inputs count.
-    td3.update(sample(batch_size, &training));
-    td3.update(sample(batch_size, &training));
-    let updates = updates.max(2).next_multiple_of(2);
-    let (mut critic, mut actor) = (Vec::new(), Vec::new());
-    let started = Instant::now();
-    for _ in 0..updates {
-        let batch = sample(batch_size, &training);
-        let step = Instant::now();
-        td3.critic_step(&batch);
-        critic.push(step.elapsed().as_secs_f64() * 1e3);
-        if td3.actor_due() {
-            let step = Instant::now();
-            td3.actor_step(batch);
-            actor.push(step.elapsed().as_secs_f64() * 1e3);
-        }
-    }
-    let update_ms_mean = started.elapsed().as_secs_f64() * 1e3 / updates as f64;
+    device: &'a Device,
+}
 
-    let policy = td3.policy();
-    let mut infer = |n: usize| {
-        let batch = sample(n, device);
-        time_ms(10, || {
-            let action = N::act(&policy, batch.input.clone(), batch.vector.clone());
-            std::hint::black_box(action.into_data());
+impl WithNetworks for TimeNetworks<'_> {
+    type Output = anyhow::Result<NetworkTimes>;
+
+    fn with<N: Networks>(self, networks: N) -> Self::Output {
+        let TimeNetworks {
+            replay,
+            batch_size,
+            updates,
+            device,
+        } = self;
+        let training = device.clone().autodiff();
+        let mut td3 = Td3::new(Td3Config::default(), networks.clone(), &training)?;
+        let mut rng = SplitMix64::new(7);
+        let mut sample = |n: usize, on: &Device| {
+            let sampled = replay.sample(n, &mut rng).expect("the replay is full");
+            minibatch_tensors(&sampled, &networks, on)
+        };
+        // Two warm-up updates, then `updates` timed ones, each step timed on
+        // its own; sampling and building the inputs count.
+        td3.update(sample(batch_size, &training));
+        td3.update(sample(batch_size, &training));
+        let updates = updates.max(2).next_multiple_of(2);
+        let (mut critic, mut actor) = (Vec::new(), Vec::new());
+        let started = Instant::now();
+        for _ in 0..updates {
+            let batch = sample(batch_size, &training);
+            let step = Instant::now();
+            td3.critic_step(&batch);
+            critic.push(step.elapsed().as_secs_f64() * 1e3);
+            if td3.actor_due() {
+                let step = Instant::now();
+                td3.actor_step(batch);
+                actor.push(step.elapsed().as_secs_f64() * 1e3);
+            }
+        }
+        let update_ms_mean = started.elapsed().as_secs_f64() * 1e3 / updates as f64;
+
+        let policy = td3.policy();
+        let mut infer = |n: usize| {
+            let batch = sample(n, device);
+            time_ms(10, || {
+                let action = N::act(&policy, batch.input.clone(), batch.vector.clone());
+                std::hint::black_box(action.into_data());
+            })
+        };
+        Ok(NetworkTimes {
+            update_ms_mean,
+            critic_step_ms: mean(&critic),
+            actor_step_ms: mean(&actor),
+            actor_infer_ms_batch1: infer(1),
+            actor_infer_ms_batch16: infer(16),
+            updates_timed: updates,
         })
-    };
-    Ok(NetworkTimes {
-        update_ms_mean,
-        critic_step_ms: mean(&critic),
-        actor_step_ms: mean(&actor),
-        actor_infer_ms_batch1: infer(1),
-        actor_infer_ms_batch16: infer(16),
-        updates_timed: updates,
-    })
+    }
 }
 
 fn mean(v: &[f64]) -> f64 {
@@ -216,22 +227,15 @@ pub fn run(
     device: &Device,
 ) -> anyhow::Result<LearnerBench> {
     let replay = filled_replay(env, capacity)?;
-    let networks = match network.architecture(env) {
-        Architecture::Paper { .. } => time_networks(
-            PaperNetworks::new(Renderer::for_config(env)?),
-            &replay,
+    let networks = network.architecture(env).networks_for(
+        env,
+        TimeNetworks {
+            replay: &replay,
             batch_size,
             updates,
             device,
-        )?,
-        Architecture::Set(shape) => time_networks(
-            SetNetworks::new(shape, env.fov_px),
-            &replay,
-            batch_size,
-            updates,
-            device,
-        )?,
-    };
+        },
+    )??;
     // The ingest runs secured as deployed: the run's credentials, and
     // plaintext files beside them.
     let dir = tempfile::tempdir()?;

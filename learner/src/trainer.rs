@@ -15,10 +15,8 @@ use serde::Serialize;
 use std::path::PathBuf;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
-use tweezer_gym::{Renderer, SplitMix64};
-use tweezer_nets::{
-    Architecture, Networks, PaperNetworks, SetNetworks, SnapshotError, SnapshotInfo, encode,
-};
+use tweezer_gym::SplitMix64;
+use tweezer_nets::{Networks, SnapshotError, SnapshotInfo, WithNetworks, encode};
 
 /// Sums of update statistics between two metrics lines.
 #[derive(Default)]
@@ -74,30 +72,39 @@ pub fn training(
     resumed: Option<&Loaded>,
     device: &Device,
 ) -> anyhow::Result<Box<dyn Training>> {
-    Ok(match file.learner.network.architecture(&file.env) {
-        Architecture::Paper { .. } => {
-            let networks = PaperNetworks::new(Renderer::for_config(&file.env)?);
-            Box::new(Trainer::new(
+    struct Start<'a> {
+        file: &'a LearnerFile,
+        shared: Arc<LearnerState>,
+        checkpoints: Checkpoints,
+        resumed: Option<&'a Loaded>,
+        device: &'a Device,
+    }
+    impl WithNetworks for Start<'_> {
+        type Output = anyhow::Result<Box<dyn Training>>;
+        fn with<N: Networks>(self, networks: N) -> Self::Output {
+            let s = self;
+            let trainer = Trainer::new(
                 networks,
-                file,
-                shared,
-                checkpoints,
-                resumed,
-                device,
-            )?)
+                s.file,
+                s.shared,
+                s.checkpoints,
+                s.resumed,
+                s.device,
+            )?;
+            Ok(Box::new(trainer))
         }
-        Architecture::Set(shape) => {
-            let networks = SetNetworks::new(shape, file.env.fov_px);
-            Box::new(Trainer::new(
-                networks,
-                file,
-                shared,
-                checkpoints,
-                resumed,
-                device,
-            )?)
-        }
-    })
+    }
+    let architecture = file.learner.network.architecture(&file.env);
+    architecture.networks_for(
+        &file.env,
+        Start {
+            file,
+            shared,
+            checkpoints,
+            resumed,
+            device,
+        },
+    )?
 }
 
 /// TD3 fed from the shared replay.

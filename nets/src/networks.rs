@@ -14,7 +14,8 @@ use crate::set_encoder::SetEncoderConfig;
 use crate::spheres::{SetBatch, SphereSets};
 use burn::module::{Module, ModuleDisplay};
 use burn::tensor::{Device, Tensor};
-use tweezer_gym::Renderer;
+use tweezer_config::ConfigError;
+use tweezer_gym::{EnvConfig, Renderer};
 
 /// An architecture's networks and how observations become their inputs.
 pub trait Networks: Clone + Send + Sync + 'static {
@@ -59,6 +60,33 @@ pub trait Networks: Clone + Send + Sync + 'static {
         vector: Tensor<2>,
         action: Tensor<2>,
     ) -> Tensor<2>;
+}
+
+/// Work done with an architecture's networks, whichever they are: what
+/// [`Architecture::networks_for`] hands the networks to.
+pub trait WithNetworks {
+    /// What the work returns.
+    type Output;
+
+    /// Does the work with `networks`.
+    fn with<N: Networks>(self, networks: N) -> Self::Output;
+}
+
+impl Architecture {
+    /// Does `work` with this architecture's networks acting in `env`: a CNN
+    /// on the images `env` renders (a snapshot of another resolution is then
+    /// refused by [`crate::decode`]), a set network on `env`'s field of
+    /// view at the scale it was trained at.
+    pub fn networks_for<W: WithNetworks>(
+        &self,
+        env: &EnvConfig,
+        work: W,
+    ) -> Result<W::Output, ConfigError> {
+        Ok(match *self {
+            Self::Paper { .. } => work.with(PaperNetworks::new(Renderer::for_config(env)?)),
+            Self::Set(shape) => work.with(SetNetworks::new(shape, env.fov_px)),
+        })
+    }
 }
 
 /// The paper's CNNs on images of the renderer's resolution.

@@ -2,13 +2,12 @@
 //! observations become one batch of the network's inputs (rendered images
 //! or sphere sets) and the actor runs once per call.
 
-use crate::architecture::Architecture;
-use crate::networks::{Networks, PaperNetworks, SetNetworks};
+use crate::networks::{Networks, WithNetworks};
 use crate::snapshot::{SnapshotError, SnapshotInfo, decode, read_info};
 use burn::tensor::{Device, Tensor, TensorData};
 use std::path::Path;
 use tweezer_config::ConfigError;
-use tweezer_gym::{Action, EnvConfig, Observation, Policy, Renderer};
+use tweezer_gym::{Action, EnvConfig, Observation, Policy};
 
 /// A snapshot file that cannot become a policy.
 #[derive(Debug, thiserror::Error)]
@@ -80,22 +79,17 @@ impl NetworkPolicy {
         env: &EnvConfig,
         device: &Device,
     ) -> Result<(Self, SnapshotInfo), LoadError> {
-        fn load<N: Networks>(
-            bytes: &[u8],
-            networks: N,
-            device: &Device,
-        ) -> Result<(NetworkPolicy, SnapshotInfo), LoadError> {
-            let (actor, info) = decode(bytes, &networks, device)?;
-            Ok((NetworkPolicy::new(networks, actor, device.clone()), info))
+        struct Load<'a>(&'a [u8], &'a Device);
+        impl WithNetworks for Load<'_> {
+            type Output = Result<(NetworkPolicy, SnapshotInfo), SnapshotError>;
+            fn with<N: Networks>(self, networks: N) -> Self::Output {
+                let Load(bytes, device) = self;
+                let (actor, info) = decode(bytes, &networks, device)?;
+                Ok((NetworkPolicy::new(networks, actor, device.clone()), info))
+            }
         }
-        match read_info(bytes)?.architecture {
-            Architecture::Paper { .. } => load(
-                bytes,
-                PaperNetworks::new(Renderer::for_config(env)?),
-                device,
-            ),
-            Architecture::Set(shape) => load(bytes, SetNetworks::new(shape, env.fov_px), device),
-        }
+        let architecture = read_info(bytes)?.architecture;
+        Ok(architecture.networks_for(env, Load(bytes, device))??)
     }
 
     /// Loads the snapshot file at `path` for the observations of `env`.
