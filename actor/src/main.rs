@@ -1,12 +1,14 @@
 //! The actor process: streams steps to the learner (`run`), evaluates
-//! policies, benchmarks the environment and draws the demo.
+//! policies, prints a policy's actions, benchmarks the environment and
+//! draws the demo.
 
+mod act;
 mod bench;
 mod config;
 mod prometheus_metrics;
 mod stream;
 
-use anyhow::bail;
+use anyhow::{Context, bail};
 use burn::tensor::Device;
 use clap::{Parser, Subcommand};
 use config::ActorFile;
@@ -51,6 +53,10 @@ enum Command {
         /// Stop once the learner has acknowledged this many steps.
         #[arg(long)]
         steps: Option<u64>,
+        /// Serve Prometheus metrics here instead of `actor.metrics_listen`
+        /// (the security file then needs cert, key and tokens).
+        #[arg(long, value_name = "ADDR")]
+        metrics_listen: Option<std::net::SocketAddr>,
         /// Log as JSON lines instead of text.
         #[arg(long)]
         log_json: bool,
@@ -70,6 +76,21 @@ enum Command {
         /// Print one JSON object instead of a table.
         #[arg(long)]
         json: bool,
+    },
+    /// Print a snapshot's actions for observations given as JSON lines
+    /// (`{"centres": [[x, y], ...], "vector": [x, y]}`), one
+    /// `{"action": [x, y]}` line each: the reference other implementations
+    /// of a policy are checked against.
+    Act {
+        /// The policy snapshot (`.safetensors`).
+        #[arg(long)]
+        policy: PathBuf,
+        /// The observations file (default: standard input).
+        #[arg(long)]
+        observations: Option<PathBuf>,
+        /// Observations acted on at once (the policy's batch).
+        #[arg(long, default_value_t = 64)]
+        batch: usize,
     },
     /// Measure environment and renderer speed.
     Bench {
@@ -139,10 +160,14 @@ fn main() -> anyhow::Result<()> {
             id,
             seed,
             steps,
+            metrics_listen,
             log_json,
             security,
         } => {
             init_logging(log_json);
+            if metrics_listen.is_some() {
+                config.actor.metrics_listen = metrics_listen;
+            }
             let security = tweezer_rpc::Security::load(security.as_deref())?;
             let metrics = config
                 .actor
@@ -181,6 +206,34 @@ fn main() -> anyhow::Result<()> {
             let mut policy = policy_named(&policy, &config.env)?;
             let episodes = evaluate(&config.env, policy.as_mut(), &seeds.0, batch)?;
             print_summary(&EvalSummary::of(&episodes), json)?;
+        }
+        Command::Act {
+            policy,
+            observations,
+            batch,
+        } => {
+            let (mut policy, _) = NetworkPolicy::from_file(&policy, &config.env, &Device::flex())?;
+            let stdout = std::io::stdout().lock();
+            match observations {
+                Some(path) => {
+                    let file = std::fs::File::open(&path)
+                        .with_context(|| format!("cannot open {}", path.display()))?;
+                    act::run(
+                        &config.env,
+                        &mut policy,
+                        std::io::BufReader::new(file),
+                        stdout,
+                        batch,
+                    )?
+                }
+                None => act::run(
+                    &config.env,
+                    &mut policy,
+                    std::io::stdin().lock(),
+                    stdout,
+                    batch,
+                )?,
+            };
         }
         Command::Bench {
             seconds,

@@ -5,7 +5,9 @@
 # scrapes each /metrics as a scraper that does not ask for OpenMetrics
 # would, and runs `promtool check metrics` on each; then checks that every
 # metric the Grafana dashboard (deploy/grafana/tweezer-rl.json) queries is
-# exposed by a live service. Stops only the processes it started.
+# exposed by a live service, and that the Kubernetes scrape config
+# (kubernetes.yml) passes `promtool check config`. Stops only the processes
+# it started.
 #
 #   deploy/prometheus/check-metrics.sh BIN_DIR   # learner, actor, hardware-agent, tweezer
 set -euo pipefail
@@ -95,3 +97,11 @@ for metric in $(grep -o 'tweezer_[a-z_]*' "$dashboard" | sort -u); do
 done
 [[ "$missing" == 0 ]] || exit 1
 say "passed: every metric the dashboard queries is exposed ($(grep -o 'tweezer_[a-z_]*' "$dashboard" | sort -u | wc -l) names)"
+
+# The Kubernetes scrape config, with this check's CA and read token where
+# it expects them (the Slurm one runs live in deploy/slurm/test-cluster.sh).
+mkdir -p k8s/tweezer
+cp "$here/kubernetes.yml" k8s/
+cp ca.crt read.token k8s/tweezer/
+promtool check config k8s/kubernetes.yml >/dev/null || { promtool check config k8s/kubernetes.yml; exit 1; }
+say "passed: promtool check config deploy/prometheus/kubernetes.yml"

@@ -4,8 +4,10 @@
 # loopback (munged, slurmctld, and two slurmd as virtual nodes, since a
 # heterogeneous job needs two), submits the job with a tiny config, requeues
 # it once it has checkpointed, and checks that it trained, checkpointed,
-# resumed after the requeue and stopped with a final checkpoint. Stops only
-# the daemons it started. Needs root.
+# resumed after the requeue and stopped with a final checkpoint; while the
+# requeued job runs, Prometheus (Debian's package) scrapes the targets the
+# job registered, with deploy/prometheus/slurm.yml, and every one must be
+# up. Stops only the daemons it started. Needs root.
 #
 #   deploy/slurm/test-cluster.sh BIN_DIR     # the learner, actor and tweezer binaries
 set -euo pipefail
@@ -26,6 +28,12 @@ if ! command -v slurmctld >/dev/null || ! command -v munged >/dev/null; then
     export DEBIAN_FRONTEND=noninteractive
     apt-get update -qq
     apt-get install -y -qq --no-install-recommends slurm-wlm munge >/dev/null
+fi
+if ! command -v prometheus >/dev/null || ! command -v promtool >/dev/null; then
+    say "installing prometheus"
+    export DEBIAN_FRONTEND=noninteractive
+    apt-get update -qq
+    apt-get install -y -qq --no-install-recommends prometheus >/dev/null
 fi
 
 pids=()
@@ -136,7 +144,11 @@ mkdir -p "$sec"
 "$bin/tweezer" token new --role actor --name actors --tokens "$sec/tokens" --out "$sec/actor.token" >/dev/null
 "$bin/tweezer" token new --role read --name test --tokens "$sec/tokens" --out "$sec/read.token" >/dev/null
 printf 'cert = "learner.crt"\nkey = "learner.key"\ntokens = "tokens"\n' > "$sec/learner.toml"
-printf 'ca = "ca.crt"\ntoken_file = "actor.token"\n' > "$sec/actor.toml"
+# The actors serve metrics too: a certificate (this one names the loopback
+# address every virtual node shares) and the tokens a scraper's is checked
+# against.
+printf 'ca = "ca.crt"\ntoken_file = "actor.token"\ncert = "learner.crt"\nkey = "learner.key"\ntokens = "tokens"\n' \
+    > "$sec/actor.toml"
 printf 'ca = "ca.crt"\n' > "$sec/probe.toml"
 
 env_table="$(cat "$here/../tiny-env.toml")"
@@ -164,7 +176,7 @@ EOF
 run="$work/run"
 job=$(TWEEZER_BIN="$bin" TWEEZER_RUN="$run" TWEEZER_CONFIG="$work/learner.toml" \
     TWEEZER_ACTOR_CONFIG="$work/actor.toml" TWEEZER_SECURITY="$sec" \
-    TWEEZER_PORT=$((ctld_port + 3)) TWEEZER_SECONDS=45 \
+    TWEEZER_PORT=$((ctld_port + 3)) TWEEZER_METRICS_PORT=$((ctld_port + 4)) TWEEZER_SECONDS=45 \
     sbatch --parsable --output="$work/job.out" "$here/train.sbatch")
 job="${job%%;*}"
 say "submitted job $job"
@@ -190,6 +202,34 @@ resumed() { grep -q '"resuming"' "$work/job.out" 2>/dev/null; }
 # A requeued job waits out the scheduler's restart delay (about two minutes).
 wait_for "the requeued job to resume" 300 resumed
 say "resumed"
+
+# Prometheus with the shipped scrape config, its globs pointed at this run:
+# the learner and both actors registered themselves and are up.
+prom="$work/prometheus"
+mkdir -p "$prom"
+cp "$sec/ca.crt" "$sec/read.token" "$prom/"
+sed -e "s|/shared/tweezer/prometheus|$run/prometheus|" -e 's/scrape_interval: 15s/scrape_interval: 1s/' \
+    "$here/../prometheus/slurm.yml" > "$prom/prometheus.yml"
+promtool check config "$prom/prometheus.yml" >/dev/null
+prom_port=$((ctld_port + 10))
+prometheus --config.file="$prom/prometheus.yml" --storage.tsdb.path="$prom/data" \
+    --web.listen-address="127.0.0.1:$prom_port" > "$prom/prometheus.log" 2>&1 &
+pids+=($!)
+up_targets() { # how many targets Prometheus scraped successfully, by job
+    curl -sf --max-time 2 "http://127.0.0.1:$prom_port/api/v1/query?query=up" \
+        | python3 -c 'import json, sys
+r = json.load(sys.stdin)["data"]["result"]
+print(" ".join(sorted(s["metric"]["job"] + "=" + s["value"][1] for s in r)))' 2>/dev/null || true
+}
+all_up() { [[ "$(up_targets)" == "tweezer-actor=1 tweezer-actor=1 tweezer-learner=1" ]]; }
+up_within() { for _ in $(seq "$1"); do all_up && return 0; sleep 1; done; return 1; }
+if ! up_within 60; then
+    say "Prometheus did not find the learner and both actors up: $(up_targets)"
+    ls "$run/prometheus"
+    tail -20 "$prom/prometheus.log"
+    exit 1
+fi
+say "Prometheus scrapes the learner and both actors through file_sd: all up"
 gone() { [[ -z "$(squeue -h -j "$job" 2>/dev/null)" ]]; }
 wait_for "the job to end" 300 gone
 

@@ -171,8 +171,43 @@ async fn final_report(
             eprintln!("{signal}: report skipped; run `experiment report {dirs}` later");
             Ok(None)
         }
-        written = reporting => Ok(Some(written??)),
+        written = reporting => {
+            let report = written??;
+            log_evaluations(&report)?;
+            Ok(Some(report))
+        }
     }
+}
+
+/// Each run's held-out evaluation as an `eval` line of its run log (and so
+/// TensorBoard scalars), at the training step of the snapshot evaluated.
+fn log_evaluations(report: &Report) -> anyhow::Result<()> {
+    #[derive(Serialize)]
+    struct EvalLine<'a> {
+        updates: u64,
+        snapshot: &'a str,
+        seeds: &'a str,
+        #[serde(flatten)]
+        summary: &'a tweezer_gym::EvalSummary,
+    }
+    for row in report.rows.iter().filter(|r| !r.run.is_empty()) {
+        let info = std::fs::read(&row.snapshot)
+            .ok()
+            .and_then(|bytes| tweezer_nets::read_info(&bytes).ok());
+        let run = RunDir::new(Path::new(&row.run));
+        RunLog::append(&run.run_log(), "experiment")
+            .with_context(|| format!("cannot open {}", run.run_log().display()))?
+            .write(
+                "eval",
+                EvalLine {
+                    updates: info.map_or(0, |i| i.training_step),
+                    snapshot: &row.policy,
+                    seeds: &report.seeds,
+                    summary: &row.summary,
+                },
+            );
+    }
+    Ok(())
 }
 
 /// Refuses a directory that already holds a run.
@@ -350,7 +385,7 @@ async fn supervise(
         updates_per_sec: updates as f64 / seconds.max(1e-9),
         actor_restarts: restarts.iter().sum(),
     };
-    RunLog::append(&run.run_log())
+    RunLog::append(&run.run_log(), "experiment")
         .with_context(|| format!("cannot open {}", run.run_log().display()))?
         .write("train", &summary);
 

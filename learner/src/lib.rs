@@ -22,4 +22,5 @@ pub mod serve;
 pub mod service;
 pub mod snapshots;
 pub mod td3;
+pub mod tensorboard;
 pub mod trainer;

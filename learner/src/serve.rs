@@ -204,7 +204,7 @@ fn shared_state(
     let mut limiter = Limiter::new(config.limiter.clone());
     limiter.rebase(replay.len());
     let limiter = SharedLimiter::new(limiter, replay.len());
-    let run_log = RunLog::append(&run_dir.run_log())
+    let run_log = RunLog::append(&run_dir.run_log(), "learner")
         .with_context(|| format!("cannot open {}", run_dir.run_log().display()))?;
     let shared = LearnerState::new(replay, Some(limiter), StepBounds::for_config(&file.env))
         .with_uniform_steps(config.uniform_steps)

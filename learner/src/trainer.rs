@@ -35,6 +35,7 @@ struct UpdateLine {
     updates: u64,
     steps_inserted: u64,
     replay: usize,
+    replay_fill: f64,
     critic_loss: f64,
     actor_loss: f64,
     mean_q: f64,
@@ -329,10 +330,15 @@ impl<N: Networks> Trainer<N> {
         let (insert_rate, sample_rate) = self.measure_rates();
         let s = std::mem::take(&mut self.sums);
         let n = s.n.max(1) as f64;
+        let (replay, capacity) = {
+            let replay = self.shared.replay();
+            (replay.len(), replay.capacity())
+        };
         let line = UpdateLine {
             updates: self.td3.updates(),
             steps_inserted: self.shared.steps_inserted(),
-            replay: self.shared.replay().len(),
+            replay,
+            replay_fill: replay as f64 / capacity.max(1) as f64,
             critic_loss: s.critic_loss / n,
             actor_loss: s.actor_loss / s.actor_n.max(1) as f64,
             mean_q: s.mean_q / n,

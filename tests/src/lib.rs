@@ -372,6 +372,58 @@ pub fn status(runtime: &tokio::runtime::Runtime, addr: &str) -> Option<pb::Learn
     runtime.block_on(learner_status(addr, "read")).ok()
 }
 
+/// Polls the learner at `addr` until `done` holds; panics naming `what`
+/// after `limit`.
+pub fn wait_for_learner(
+    runtime: &tokio::runtime::Runtime,
+    addr: &str,
+    what: &str,
+    limit: Duration,
+    done: impl Fn(&pb::LearnerStatus) -> bool,
+) -> pb::LearnerStatus {
+    let deadline = Instant::now() + limit;
+    let mut last = None;
+    loop {
+        if let Some(s) = status(runtime, addr) {
+            if done(&s) {
+                return s;
+            }
+            last = Some(s);
+        }
+        assert!(
+            Instant::now() < deadline,
+            "never {what}; last status {last:?}"
+        );
+        std::thread::sleep(Duration::from_millis(100));
+    }
+}
+
+/// A one-command train file in [`TINY_ENV`]: a learner that learns from
+/// the first few hundred steps, actors of 4 environments, `train` (a
+/// `[train]` table and anything after it).
+pub fn tiny_train_file(train: &str) -> String {
+    format!(
+        "{TINY_ENV}\n[learner]\nuniform_steps = 300\n\
+         [learner.limiter]\nmin_size = 200\nupdates_per_insert = 0.25\n\
+         [learner.snapshots]\nevery_updates = 50\n\
+         [actor]\nenvs = 4\nbatch_steps = 50\n{train}"
+    )
+}
+
+/// `experiment train` of the train file `train` into `out`, with a JSON
+/// summary and this workspace's learner and actor.
+pub fn experiment_train(train: &str, out: &Path) -> Command {
+    let mut command = Command::new(binary("experiment"));
+    command
+        .args(["--config", train, "train", "--json", "--out"])
+        .arg(out)
+        .arg("--learner-bin")
+        .arg(binary("learner"))
+        .arg("--actor-bin")
+        .arg(binary("actor"));
+    command
+}
+
 /// A loopback port free at the time of the call.
 pub fn free_port() -> u16 {
     std::net::TcpListener::bind("127.0.0.1:0")

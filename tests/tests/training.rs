@@ -5,10 +5,9 @@
 use std::path::Path;
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
-use tweezer_proto::pb;
 use tweezer_system_tests::{
-    TINY_ENV, binary, credentials, free_port, run, signal, start_learner, status, stdout_of, stop,
-    write,
+    TINY_ENV, binary, credentials, experiment_train, free_port, run, signal, start_learner, status,
+    stdout_of, stop, tiny_train_file, wait_for_learner, write,
 };
 
 /// Processes killed when a test ends early.
@@ -34,31 +33,6 @@ fn start_actor(config: &str, id: &str, seed: u64) -> Child {
         .unwrap()
 }
 
-/// Polls the learner until `done` holds; panics naming `what` after `limit`.
-fn wait_for(
-    runtime: &tokio::runtime::Runtime,
-    addr: &str,
-    what: &str,
-    limit: Duration,
-    done: impl Fn(&pb::LearnerStatus) -> bool,
-) -> pb::LearnerStatus {
-    let deadline = Instant::now() + limit;
-    let mut last = None;
-    loop {
-        if let Some(s) = status(runtime, addr) {
-            if done(&s) {
-                return s;
-            }
-            last = Some(s);
-        }
-        assert!(
-            Instant::now() < deadline,
-            "never {what}; last status {last:?}"
-        );
-        std::thread::sleep(Duration::from_millis(100));
-    }
-}
-
 /// The newest checkpoint's (updates, steps), from its file name.
 fn newest_checkpoint(dir: &Path) -> Option<(u64, u64)> {
     std::fs::read_dir(dir)
@@ -70,20 +44,6 @@ fn newest_checkpoint(dir: &Path) -> Option<(u64, u64)> {
             Some((updates.parse().ok()?, steps.parse().ok()?))
         })
         .max()
-}
-
-/// `experiment train` of the train file `train` into `out`, with a JSON
-/// summary.
-fn train_command(train: &str, out: &Path) -> Command {
-    let mut command = Command::new(binary("experiment"));
-    command
-        .args(["--config", train, "train", "--json", "--out"])
-        .arg(out)
-        .arg("--learner-bin")
-        .arg(binary("learner"))
-        .arg("--actor-bin")
-        .arg(binary("actor"));
-    command
 }
 
 fn report(stdout: &str) -> serde_json::Value {
@@ -129,7 +89,7 @@ fn two_actors_train_through_the_sigkill_of_an_actor_and_of_the_learner() {
     let minute = Duration::from_secs(60);
 
     // Both stream, and the actors act with the learner's snapshots.
-    wait_for(
+    wait_for_learner(
         &runtime,
         &addr,
         "two actors past exploration",
@@ -166,17 +126,17 @@ fn two_actors_train_through_the_sigkill_of_an_actor_and_of_the_learner() {
     // under its id, rejoins and its steps are stored again.
     procs.0[2].kill().unwrap();
     procs.0[2].wait().unwrap();
-    let alone = wait_for(&runtime, &addr, "the learner noticing", minute, |s| {
+    let alone = wait_for_learner(&runtime, &addr, "the learner noticing", minute, |s| {
         s.connected_actors == 1
     });
-    wait_for(&runtime, &addr, "training on with one actor", minute, |s| {
+    wait_for_learner(&runtime, &addr, "training on with one actor", minute, |s| {
         s.updates >= alone.updates + 50
     });
     procs.0[2] = start_actor(&actor_config, "actor-b", 3);
-    let rejoined = wait_for(&runtime, &addr, "the actor rejoining", minute, |s| {
+    let rejoined = wait_for_learner(&runtime, &addr, "the actor rejoining", minute, |s| {
         s.connected_actors == 2
     });
-    wait_for(&runtime, &addr, "the rejoined actor's steps", minute, |s| {
+    wait_for_learner(&runtime, &addr, "the rejoined actor's steps", minute, |s| {
         s.steps_inserted >= rejoined.steps_inserted + 400
     });
 
@@ -201,7 +161,7 @@ fn two_actors_train_through_the_sigkill_of_an_actor_and_of_the_learner() {
             && resumed.steps_inserted < steps + 2_000,
         "resumed from the newest checkpoint ({updates} updates, {steps} steps): {resumed:?}"
     );
-    wait_for(
+    wait_for_learner(
         &runtime,
         &addr,
         "training continuing with both actors",
@@ -238,16 +198,12 @@ fn sigint_stops_a_one_command_run_with_a_loadable_final_checkpoint() {
     let out = dir.path().join("run");
     let train = write(
         &dir.path().join("train.toml"),
-        &format!(
-            "{TINY_ENV}\n[learner]\nuniform_steps = 300\n\
-             [learner.limiter]\nmin_size = 200\nupdates_per_insert = 0.25\n\
-             [learner.snapshots]\nevery_updates = 50\n\
-             [learner.checkpoints]\nevery_seconds = 0\n\
-             [actor]\nenvs = 4\nbatch_steps = 50\n\
-             [train]\nactors = 2\nminutes = 0\neval_seeds = \"0..8\"\npicture_seeds = \"0..1\"\n"
+        &tiny_train_file(
+            "[learner.checkpoints]\nevery_seconds = 0\n\
+             [train]\nactors = 2\nminutes = 0\neval_seeds = \"0..8\"\npicture_seeds = \"0..1\"\n",
         ),
     );
-    let child = train_command(&train, &out)
+    let child = experiment_train(&train, &out)
         .stdout(Stdio::piped())
         .stderr(Stdio::piped())
         .spawn()
@@ -310,16 +266,12 @@ fn a_sweep_trains_each_run_in_turn_and_reports_them_together() {
     let out = dir.path().join("sweep");
     let train = write(
         &dir.path().join("sweep.toml"),
-        &format!(
-            "{TINY_ENV}\n[learner]\nuniform_steps = 300\n\
-             [learner.limiter]\nmin_size = 200\nupdates_per_insert = 0.25\n\
-             [learner.snapshots]\nevery_updates = 50\n\
-             [actor]\nenvs = 4\nbatch_steps = 50\n\
-             [train]\nminutes = 0.15\neval_seeds = \"0..4\"\npicture_seeds = \"0\"\n\
-             [sweep]\nseeds = [1, 2]\ngamma = [0.8]\n"
+        &tiny_train_file(
+            "[train]\nminutes = 0.15\neval_seeds = \"0..4\"\npicture_seeds = \"0\"\n\
+             [sweep]\nseeds = [1, 2]\ngamma = [0.8]\n",
         ),
     );
-    let output = train_command(&train, &out).output().unwrap();
+    let output = experiment_train(&train, &out).output().unwrap();
     assert!(
         output.status.success(),
         "{}",

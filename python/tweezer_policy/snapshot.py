@@ -1,0 +1,102 @@
+"""Reading a snapshot file: its metadata, checked, and its weights, verified
+against the SHA-256 the learner wrote beside them."""
+
+import hashlib
+import struct
+from dataclasses import dataclass, field
+
+import numpy as np
+from safetensors import safe_open
+
+PAPER = "tweezer-paper-actor-v1"
+SET = "tweezer-set-actor-v1"
+
+# The hyper-parameters each architecture records, as metadata keys.
+FIELDS = {
+    PAPER: ("height", "width"),
+    SET: ("sphere_hidden", "head_hidden", "pooling", "max_spheres", "fov_width", "fov_height"),
+}
+POOLINGS = ("max_mean", "max", "mean")
+MAX_SIZE = 1 << 16
+
+
+class SnapshotError(ValueError):
+    """A snapshot that cannot be used; the message names what is wrong."""
+
+
+@dataclass
+class Snapshot:
+    """What a snapshot file holds."""
+
+    architecture: str
+    """`tweezer-paper-actor-v1` (the paper's CNN) or `tweezer-set-actor-v1`."""
+    fields: dict
+    """Its hyper-parameters: ints, and `pooling` as a name."""
+    version: int
+    training_step: int
+    tensors: dict = field(repr=False)
+    """Weights by Burn's module path (`encoder.fc1.weight`), float32. Linear
+    weights are stored [in, out]: y = x @ W + b."""
+
+
+def weights_sha256(tensors):
+    """The digest the learner writes: for each tensor in name order, its
+    name, its shape as little-endian u64s, its values as little-endian f32."""
+    digest = hashlib.sha256()
+    for name in sorted(tensors):
+        array = tensors[name]
+        digest.update(name.encode())
+        for d in array.shape:
+            digest.update(struct.pack("<Q", d))
+        digest.update(np.ascontiguousarray(array, dtype="<f4").tobytes())
+    return digest.hexdigest()
+
+
+def _int(metadata, key):
+    try:
+        value = int(metadata[key])
+    except (KeyError, ValueError):
+        raise SnapshotError(f"snapshot metadata `{key}` is missing or malformed") from None
+    return value
+
+
+def read(path):
+    """Reads and checks the snapshot at `path`."""
+    try:
+        with safe_open(str(path), framework="numpy") as f:
+            metadata = f.metadata() or {}
+            tensors = {name: f.get_tensor(name) for name in f.keys()}
+    except (OSError, ValueError, RuntimeError) as e:
+        raise SnapshotError(f"not a safetensors snapshot: {path}: {e}") from None
+    if metadata.get("format") != "tweezer-snapshot":
+        raise SnapshotError("snapshot metadata `format` is missing or malformed")
+    name = metadata.get("architecture")
+    if name not in FIELDS:
+        raise SnapshotError(f"unknown architecture `{name}` (known: {PAPER}, {SET})")
+    fields = {}
+    for key in FIELDS[name]:
+        if key == "pooling":
+            if metadata.get(key) not in POOLINGS:
+                raise SnapshotError("architecture field `pooling` is missing or malformed")
+            fields[key] = metadata[key]
+            continue
+        value = _int(metadata, key)
+        if not 1 <= value <= MAX_SIZE:
+            raise SnapshotError(f"architecture field `{key}` = {value}: must lie in [1, 65536]")
+        fields[key] = value
+    for tensor, array in tensors.items():
+        if array.dtype != np.float32:
+            raise SnapshotError(f"snapshot tensor `{tensor}`: dtype {array.dtype}, expected float32")
+    expected = metadata.get("weights_sha256")
+    computed = weights_sha256(tensors)
+    if expected != computed:
+        raise SnapshotError(
+            f"snapshot weights fail their checksum (expected {expected}, computed {computed})"
+        )
+    return Snapshot(
+        architecture=name,
+        fields=fields,
+        version=_int(metadata, "version"),
+        training_step=_int(metadata, "training_step"),
+        tensors=tensors,
+    )
