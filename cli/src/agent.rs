@@ -130,21 +130,24 @@ pub async fn run(
             file,
             learner,
             greedy,
+            follow,
         } => {
             use pb::load_policy_request::Source;
-            let source = match (file, learner, greedy) {
-                (Some(f), _, _) => Source::File(f),
-                (None, Some(s), _) => Source::LearnerSnapshot(s),
-                (None, None, true) => Source::Greedy(true),
-                (None, None, false) => {
+            let source = match (file, learner, greedy, &follow) {
+                (Some(f), _, _, _) => Source::File(f),
+                (None, Some(s), _, _) => Source::LearnerSnapshot(s),
+                (None, None, true, _) => Source::Greedy(true),
+                (None, None, false, Some(tag)) => Source::LearnerSnapshot(tag.clone()),
+                (None, None, false, None) => {
                     return Err(anyhow!(
-                        "give the policy: --file SNAPSHOT, --learner best|latest|VERSION or --greedy"
+                        "give the policy: --file SNAPSHOT, --learner best|latest|VERSION, --follow best|latest or --greedy"
                     ));
                 }
             };
             client
                 .load_policy(pb::LoadPolicyRequest {
                     source: Some(source),
+                    follow: follow.is_some(),
                 })
                 .await
                 .map_err(|e| call_error("LoadPolicy", e))?

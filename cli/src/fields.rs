@@ -123,6 +123,7 @@ pub fn agent(s: &pb::AgentStatus) -> Fields {
         ("last_outcome", json!(outcome(s.last_outcome))),
         ("policy", json!(s.policy)),
         ("policy_version", json!(s.policy_version)),
+        ("following", json!(s.following)),
         ("loop_period_ms", json!(s.loop_period_ms)),
         ("latency_ms", json!(s.latency_ms)),
         ("detections", json!(s.detections)),
@@ -138,6 +139,7 @@ pub fn telemetry(t: &pb::Telemetry) -> Fields {
     let observation = t.observation.clone().unwrap_or_default();
     vec![
         ("episode", json!(t.episode)),
+        ("policy_version", json!(t.policy_version)),
         ("step", json!(t.step)),
         ("time_s", json!(t.time_s)),
         ("outcome", json!(outcome(t.outcome))),

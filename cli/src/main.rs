@@ -209,6 +209,10 @@ pub enum AgentCommand {
         /// The greedy baseline.
         #[arg(long, group = "source")]
         greedy: bool,
+        /// Follow the learner's "best" or "latest": load it now, and each
+        /// newer snapshot it publishes under that tag between episodes.
+        #[arg(long, group = "source", value_name = "TAG")]
+        follow: Option<String>,
     },
     /// Replace the virtual obstacles with those of an overlay file (TOML:
     /// `discs_um`, `[[walls]]`); an empty file clears them.

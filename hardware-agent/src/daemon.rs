@@ -5,6 +5,7 @@
 //! an emergency stop, without waiting for the loop.
 
 mod control_thread;
+mod follower;
 mod prometheus_metrics;
 mod service;
 mod state;
@@ -18,7 +19,7 @@ use tokio::net::TcpListener;
 use tweezer_hardware_agent::config::AgentConfig;
 use tweezer_hardware_agent::control::HaltKind;
 use tweezer_hardware_agent::instrument::Instrument;
-use tweezer_hardware_agent::policy_source::LoadedPolicy;
+use tweezer_hardware_agent::policy_source::{LoadedPolicy, PolicyChoice};
 use tweezer_process::{init_logging, stop_signal};
 use tweezer_proto::pb::hardware_agent_server::HardwareAgentServer;
 use tweezer_rpc::{Security, ServerSecurity};
@@ -46,8 +47,18 @@ pub fn serve(
     let mut instrument = Instrument::open(&config, twin)?;
     let stopper = instrument.rig().stopper();
     let shared = Arc::new(DaemonState::new(stopper, &policy, instrument.overlay_len()));
-    let (jobs, thread) =
-        ControlThread::spawn(instrument, policy, config.clone(), security, shared.clone())?;
+    let follow = match config.policy.choice()? {
+        PolicyChoice::Follow(tag) if !greedy => Some(tag),
+        _ => None,
+    };
+    let (jobs, thread) = ControlThread::spawn(
+        instrument,
+        policy,
+        follow,
+        config.clone(),
+        security,
+        shared.clone(),
+    )?;
     let runtime = tokio::runtime::Builder::new_multi_thread()
         .worker_threads(2)
         .enable_all()

@@ -37,6 +37,9 @@ pub struct PolicyConfig {
     pub learner: String,
     /// Which of its snapshots: "best", "latest" or a version number.
     pub snapshot: String,
+    /// Follow `snapshot` ("best" or "latest"): between episodes, load each
+    /// newer snapshot the learner publishes under it.
+    pub follow: bool,
     /// The snapshot file (source = "file").
     pub file: PathBuf,
     /// Longest wait for the learner, s.
@@ -49,6 +52,7 @@ impl Default for PolicyConfig {
             source: PolicyKind::Learner,
             learner: "127.0.0.1:50051".into(),
             snapshot: "best".into(),
+            follow: false,
             file: PathBuf::from("snapshot.safetensors"),
             timeout_s: 30.0,
         }
@@ -98,9 +102,30 @@ impl SnapshotChoice {
 }
 
 impl PolicyConfig {
+    /// The policy the table names.
+    pub fn choice(&self) -> Result<PolicyChoice, PolicyError> {
+        self.validate().map_err(PolicyError::Config)?;
+        let snapshot = || SnapshotChoice::parse(&self.snapshot).map_err(PolicyError::Config);
+        Ok(match self.source {
+            PolicyKind::Greedy => PolicyChoice::Greedy,
+            PolicyKind::File => PolicyChoice::File(self.file.clone()),
+            PolicyKind::Learner if self.follow => PolicyChoice::Follow(snapshot()?),
+            PolicyKind::Learner => PolicyChoice::Learner(snapshot()?),
+        })
+    }
+
     /// Checks the fields the source uses.
     pub fn validate(&self) -> Result<(), String> {
-        SnapshotChoice::parse(&self.snapshot)?;
+        let snapshot = SnapshotChoice::parse(&self.snapshot)?;
+        if self.follow
+            && (self.source != PolicyKind::Learner
+                || matches!(snapshot, SnapshotChoice::Version(_)))
+        {
+            return Err(format!(
+                "policy.follow needs source = \"learner\" and snapshot = \"best\" or \"latest\" (source = {:?}, snapshot = {:?})",
+                self.source, self.snapshot
+            ));
+        }
         if !(self.timeout_s.is_finite() && (0.1..=3600.0).contains(&self.timeout_s)) {
             return Err(format!(
                 "policy.timeout_s = {}: must lie in [0.1, 3600]",
@@ -121,6 +146,9 @@ impl PolicyConfig {
 pub enum PolicyChoice {
     /// A snapshot of the configured learner.
     Learner(SnapshotChoice),
+    /// The configured learner's best or latest snapshot now, and each newer
+    /// one it publishes under that tag, between episodes.
+    Follow(SnapshotChoice),
     /// A snapshot file.
     File(PathBuf),
     /// The greedy baseline.
@@ -184,15 +212,7 @@ impl LoadedPolicy {
         env: &EnvConfig,
         security: Option<&Security>,
     ) -> Result<Self, PolicyError> {
-        config.validate().map_err(PolicyError::Config)?;
-        let choice = match config.source {
-            PolicyKind::Greedy => PolicyChoice::Greedy,
-            PolicyKind::File => PolicyChoice::File(config.file.clone()),
-            PolicyKind::Learner => PolicyChoice::Learner(
-                SnapshotChoice::parse(&config.snapshot).map_err(PolicyError::Config)?,
-            ),
-        };
-        Self::choose(&choice, config, env, security)
+        Self::choose(&config.choice()?, config, env, security)
     }
 
     /// Loads `choice`, a learner's snapshot from the learner `config` names
@@ -204,6 +224,12 @@ impl LoadedPolicy {
         security: Option<&Security>,
     ) -> Result<Self, PolicyError> {
         match choice {
+            PolicyChoice::Follow(SnapshotChoice::Version(v)) => Err(PolicyError::Config(format!(
+                "only \"best\" or \"latest\" can be followed, not version {v}"
+            ))),
+            PolicyChoice::Follow(tag) => {
+                Self::choose(&PolicyChoice::Learner(*tag), config, env, security)
+            }
             PolicyChoice::Greedy => Ok(Self::greedy()),
             PolicyChoice::File(path) => {
                 Self::from_file_within(path, env, Duration::from_secs_f64(config.timeout_s))
@@ -259,6 +285,63 @@ impl LoadedPolicy {
             }
         };
         Self::from_bytes(&bytes, env, &format!("file {}", path.display()))
+    }
+
+    /// The snapshot the learner `config` names publishes under `tag` when
+    /// it is newer than `version`: downloaded, verified and loaded; `None`
+    /// when there is none newer. One bound, `policy.timeout_s`, for all of
+    /// it.
+    pub fn newer(
+        config: &PolicyConfig,
+        tag: SnapshotChoice,
+        version: u64,
+        env: &EnvConfig,
+        security: &Security,
+    ) -> Result<Option<Self>, PolicyError> {
+        let address = config.learner.as_str();
+        let timeout = Duration::from_secs_f64(config.timeout_s);
+        let fail = |reason: String| PolicyError::Learner {
+            address: address.into(),
+            choice: tag,
+            reason,
+        };
+        let runtime = tokio::runtime::Builder::new_current_thread()
+            .enable_all()
+            .build()
+            .map_err(|e| fail(e.to_string()))?;
+        let ask = async {
+            let channel = ClientSecurity::load(security)
+                .map_err(|e| fail(e.to_string()))?
+                .connect_bounded(address, timeout)
+                .await
+                .map_err(|e| fail(e.to_string()))?;
+            tweezer_rpc::learner_status(&mut LearnerClient::new(channel))
+                .await
+                .map_err(|e| fail(e.to_string()))
+        };
+        let status = runtime
+            .block_on(async { tokio::time::timeout(timeout, ask).await })
+            .map_err(|_| {
+                fail(format!(
+                    "no status within {:.1} s (policy.timeout_s)",
+                    timeout.as_secs_f64()
+                ))
+            })??;
+        let published = match tag {
+            SnapshotChoice::Best => status.best_snapshot,
+            _ => status.latest_snapshot,
+        };
+        if published <= version {
+            return Ok(None);
+        }
+        Self::from_learner(
+            address,
+            SnapshotChoice::Version(published),
+            timeout,
+            env,
+            security,
+        )
+        .map(Some)
     }
 
     /// Downloads, verifies and loads a learner's snapshot.

@@ -127,6 +127,7 @@ async fn the_daemon_runs_episodes_stops_them_and_refuses_what_it_must() {
             source: Some(pb::load_policy_request::Source::File(
                 "/no/such.safetensors".into(),
             )),
+            follow: false,
         })
         .await
         .unwrap_err();

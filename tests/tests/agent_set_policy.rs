@@ -57,6 +57,7 @@ async fn the_agent_drives_the_twin_with_a_set_snapshot_from_a_live_learner() {
             source: Some(pb::load_policy_request::Source::LearnerSnapshot(
                 "latest".into(),
             )),
+            follow: false,
         })
         .await
         .unwrap()

@@ -70,12 +70,14 @@ fn from_learner() -> pb::LoadPolicyRequest {
         source: Some(pb::load_policy_request::Source::LearnerSnapshot(
             "latest".into(),
         )),
+        follow: false,
     }
 }
 
 fn greedy() -> pb::LoadPolicyRequest {
     pb::LoadPolicyRequest {
         source: Some(pb::load_policy_request::Source::Greedy(true)),
+        follow: false,
     }
 }
 
@@ -151,6 +153,7 @@ async fn an_emergency_stop_during_a_load_from_a_silent_learner_stays_and_resets(
             source: Some(pb::load_policy_request::Source::File(
                 fifo.to_str().unwrap().into(),
             )),
+            follow: false,
         })
         .await
         .unwrap_err();

@@ -111,6 +111,7 @@ async fn call(channel: AuthChannel, method: &str) -> Result<(), tonic::Status> {
                     source: Some(pb::load_policy_request::Source::File(
                         "/no/such.safetensors".into(),
                     )),
+                    follow: false,
                 })
                 .await
                 .map(drop),

@@ -1,6 +1,7 @@
 //! The thread that owns the instrument and the policy: it runs the jobs the
 //! service hands it, one at a time, and keeps the shared status current.
 
+use super::follower::Follower;
 use super::state::{DaemonState, Telemetry};
 use kdc101::apt::StopMode;
 use std::sync::Arc;
@@ -13,7 +14,7 @@ use tweezer_hardware_agent::config::AgentConfig;
 use tweezer_hardware_agent::control::{Ending, EpisodeSummary, StepLog};
 use tweezer_hardware_agent::instrument::Instrument;
 use tweezer_hardware_agent::overlay::OverlaySpec;
-use tweezer_hardware_agent::policy_source::{LoadedPolicy, PolicyChoice};
+use tweezer_hardware_agent::policy_source::{LoadedPolicy, PolicyChoice, SnapshotChoice};
 use tweezer_hardware_agent::record::EpisodeHeader;
 use tweezer_rpc::Security;
 
@@ -57,6 +58,8 @@ pub enum Job {
 pub struct ControlThread {
     instrument: Instrument,
     policy: LoadedPolicy,
+    /// The learner's tag being followed, if one is.
+    follower: Option<Follower>,
     config: AgentConfig,
     /// How learners' snapshots are fetched.
     security: Security,
@@ -64,18 +67,33 @@ pub struct ControlThread {
 }
 
 impl ControlThread {
-    /// Starts the thread; jobs go to the returned sender.
+    /// Starts the thread, following the learner's `follow` tag if given;
+    /// jobs go to the returned sender.
     pub fn spawn(
         instrument: Instrument,
         policy: LoadedPolicy,
+        follow: Option<SnapshotChoice>,
         config: AgentConfig,
         security: Security,
         shared: Arc<DaemonState>,
     ) -> std::io::Result<(Sender<Job>, JoinHandle<()>)> {
         let (jobs, inbox) = channel();
+        let follower = follow
+            .map(|tag| {
+                Follower::spawn(
+                    tag,
+                    policy.version,
+                    config.policy.clone(),
+                    config.env.clone(),
+                    security.clone(),
+                )
+            })
+            .transpose()?;
+        shared.status().following = follow.map(|t| t.to_string()).unwrap_or_default();
         let mut thread = Self {
             instrument,
             policy,
+            follower,
             config,
             security,
             shared,
@@ -116,24 +134,59 @@ impl ControlThread {
         }
     }
 
-    /// Loads a policy; the service has claimed the agent (Loading).
+    /// Loads a policy; the service has claimed the agent (Loading). A
+    /// policy loaded, of whatever kind, ends following the one before.
     fn load_policy(&mut self, choice: PolicyChoice) -> Result<(), JobError> {
         let loaded = LoadedPolicy::choose(
             &choice,
             &self.config.policy,
             &self.config.env,
             Some(&self.security),
-        );
-        let result = loaded.map_err(|e| JobError::Invalid(e.to_string()));
-        if let Ok(policy) = &result {
-            tracing::info!(policy = %policy.description, "policy loaded");
+        )
+        .map_err(|e| JobError::Invalid(e.to_string()))
+        .and_then(|policy| {
+            let follower = match choice {
+                PolicyChoice::Follow(tag) => Some(
+                    Follower::spawn(
+                        tag,
+                        policy.version,
+                        self.config.policy.clone(),
+                        self.config.env.clone(),
+                        self.security.clone(),
+                    )
+                    .map_err(|e| JobError::Refused(format!("cannot start following: {e}")))?,
+                ),
+                _ => None,
+            };
+            Ok((policy, follower))
+        });
+        if let Ok((policy, follower)) = &loaded {
+            tracing::info!(policy = %policy.description, following = ?follower.as_ref().map(|f| f.tag().to_string()), "policy loaded");
             let mut status = self.shared.status();
             status.policy_version = policy.version;
             status.policy = policy.description.clone();
+            status.following = follower
+                .as_ref()
+                .map(|f| f.tag().to_string())
+                .unwrap_or_default();
         }
         self.shared.job_done();
-        self.policy = result?;
+        (self.policy, self.follower) = loaded?;
         Ok(())
+    }
+
+    /// Between episodes: the newer snapshot a follower has ready, if any,
+    /// becomes the policy.
+    fn take_followed(&mut self) {
+        let Some(policy) = self.follower.as_ref().and_then(Follower::take) else {
+            return;
+        };
+        tracing::info!(policy = %policy.description, "following: the next episode runs the newer snapshot");
+        let mut status = self.shared.status();
+        status.policy_version = policy.version;
+        status.policy = policy.description.clone();
+        drop(status);
+        self.policy = policy;
     }
 
     /// Replaces the overlay; the service has claimed the agent (Loading).
@@ -194,6 +247,7 @@ impl ControlThread {
     /// Runs an episode; the service has claimed the agent (Running).
     fn start(&mut self, target: Option<Target>, twin_seed: Option<u64>, reply: Reply) {
         self.shared.halt.clear_stop();
+        self.take_followed();
         let offset = match self.target_offset(target, twin_seed) {
             Ok(offset) => offset,
             Err(e) => {
@@ -219,12 +273,13 @@ impl ControlThread {
         };
         let shared = self.shared.clone();
         let records = self.config.records.dir.clone();
+        let version = self.policy.version;
         let result = self.instrument.run_recorded(
             &mut self.policy,
             &header,
             &records,
             &shared.halt,
-            |log| report_step(&shared, episode, log),
+            |log| report_step(&shared, episode, version, log),
         );
         let ending = match result {
             Ok((summary, files)) => {
@@ -232,7 +287,7 @@ impl ControlThread {
                 let _ = self
                     .shared
                     .telemetry
-                    .send(final_telemetry(episode, &summary));
+                    .send(final_telemetry(episode, version, &summary));
                 self.shared.status().period_ms = summary.timing.period_ms_mean;
                 match summary.ending {
                     Ending::Success => shared_count(&self.shared.successes),
@@ -256,7 +311,7 @@ fn shared_count(counter: &std::sync::atomic::AtomicU64) {
 }
 
 /// Updates the status and sends telemetry for one step.
-fn report_step(shared: &DaemonState, episode: u64, log: &StepLog) {
+fn report_step(shared: &DaemonState, episode: u64, policy_version: u64, log: &StepLog) {
     shared.steps.fetch_add(1, Ordering::Relaxed);
     shared.latency_seconds.observe(log.latency_ms / 1e3);
     {
@@ -276,6 +331,7 @@ fn report_step(shared: &DaemonState, episode: u64, log: &StepLog) {
     let action = Action::clipped(log.action[0], log.action[1]).unwrap_or(Action::ZERO);
     let _ = shared.telemetry.send(Telemetry::Step {
         episode,
+        policy_version,
         step: log.step,
         time_s: log.time_s,
         observation,
@@ -286,9 +342,10 @@ fn report_step(shared: &DaemonState, episode: u64, log: &StepLog) {
 }
 
 /// The telemetry message that closes an episode.
-fn final_telemetry(episode: u64, summary: &EpisodeSummary) -> Telemetry {
+fn final_telemetry(episode: u64, policy_version: u64, summary: &EpisodeSummary) -> Telemetry {
     Telemetry::End {
         episode,
+        policy_version,
         steps: summary.steps,
         time_s: summary.duration_s,
         ending: summary.ending.clone(),

@@ -159,10 +159,26 @@ impl HardwareAgent for AgentService {
         request: Request<pb::LoadPolicyRequest>,
     ) -> Result<Response<pb::AgentStatus>, RpcStatus> {
         use pb::load_policy_request::Source;
-        let choice = match request.into_inner().source {
+        let request = request.into_inner();
+        let choice = match request.source {
+            Some(Source::LearnerSnapshot(s)) if request.follow => {
+                match SnapshotChoice::parse(&s).map_err(RpcStatus::invalid_argument)? {
+                    SnapshotChoice::Version(v) => {
+                        return Err(RpcStatus::invalid_argument(format!(
+                            "follow: only \"best\" or \"latest\" can be followed, not version {v}"
+                        )));
+                    }
+                    tag => PolicyChoice::Follow(tag),
+                }
+            }
             Some(Source::LearnerSnapshot(s)) => PolicyChoice::Learner(
                 SnapshotChoice::parse(&s).map_err(RpcStatus::invalid_argument)?,
             ),
+            Some(_) if request.follow => {
+                return Err(RpcStatus::invalid_argument(
+                    "follow applies to learner_snapshot \"best\" or \"latest\" only",
+                ));
+            }
             Some(Source::File(f)) if !f.is_empty() => PolicyChoice::File(f.into()),
             Some(Source::Greedy(true)) => PolicyChoice::Greedy,
             _ => {
@@ -237,6 +253,7 @@ fn telemetry_to_wire(telemetry: Telemetry) -> pb::Telemetry {
     match telemetry {
         Telemetry::Step {
             episode,
+            policy_version,
             step,
             time_s,
             observation,
@@ -255,9 +272,11 @@ fn telemetry_to_wire(telemetry: Telemetry) -> pb::Telemetry {
             }),
             latency_ms,
             outcome: pb::Outcome::Running.into(),
+            policy_version,
         },
         Telemetry::End {
             episode,
+            policy_version,
             steps,
             time_s,
             ending,
@@ -266,6 +285,7 @@ fn telemetry_to_wire(telemetry: Telemetry) -> pb::Telemetry {
             step: steps,
             time_s,
             outcome: ending_to_wire(&ending).into(),
+            policy_version,
             ..pb::Telemetry::default()
         },
     }
@@ -311,5 +331,6 @@ fn status_to_wire(status: &Status) -> pb::AgentStatus {
         detections: status.detections,
         latency_ms: status.latency_ms,
         virtual_obstacles: status.virtual_obstacles as u32,
+        following: status.following.clone(),
     }
 }

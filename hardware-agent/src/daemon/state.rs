@@ -58,6 +58,8 @@ pub enum Telemetry {
     Step {
         /// The episode's number.
         episode: u64,
+        /// The version of the policy driving it.
+        policy_version: u64,
         /// The step's index in the episode.
         step: u32,
         /// Seconds since the episode started.
@@ -75,6 +77,8 @@ pub enum Telemetry {
     End {
         /// The episode's number.
         episode: u64,
+        /// The version of the policy that drove it.
+        policy_version: u64,
         /// Steps it took.
         steps: u32,
         /// Its duration, s.
@@ -95,6 +99,8 @@ pub struct Status {
     pub last_ending: Option<Ending>,
     pub policy_version: u64,
     pub policy: String,
+    /// The learner's tag followed ("best", "latest"); empty if none.
+    pub following: String,
     pub period_ms: f64,
     pub detections: u32,
     pub latency_ms: f64,
@@ -150,6 +156,7 @@ impl DaemonState {
                 last_ending: None,
                 policy_version: policy.version,
                 policy: policy.description.clone(),
+                following: String::new(),
                 period_ms: 0.0,
                 detections: 0,
                 latency_ms: 0.0,
