@@ -1,6 +1,6 @@
 //! `learner bench`: how fast the learner's parts run on this machine.
 
-use crate::config::NetworkConfig;
+use crate::config::{DeviceChoice, NetworkConfig};
 use crate::learner_state::LearnerState;
 use crate::loopback::batches;
 use crate::minibatch::minibatch_tensors;
@@ -25,6 +25,9 @@ use tweezer_rpc::{ClientSecurity, LoopbackCredentials, Security, ServerSecurity}
 pub struct LearnerBench {
     /// The networks timed, with their hyper-parameters.
     pub architecture: String,
+    /// The device the networks ran on (`learner.device`): `flex`, or
+    /// `cuda` or `wgpu` with the name of the GPU Burn opened.
+    pub device: String,
     /// One full TD3 update at `batch_size`: sampling, the inputs (images
     /// rendered or sets built), the critic
     /// step, and the actor step with soft updates every second update;
@@ -224,8 +227,10 @@ pub fn run(
     batch_size: usize,
     capacity: usize,
     updates: usize,
-    device: &Device,
+    device: DeviceChoice,
 ) -> anyhow::Result<LearnerBench> {
+    let (choice, device) = (device, device.device()?);
+    let device = &device;
     let replay = filled_replay(env, capacity)?;
     let networks = network.architecture(env).networks_for(
         env,
@@ -250,6 +255,7 @@ pub fn run(
     )?;
     Ok(LearnerBench {
         architecture: network.architecture(env).to_string(),
+        device: choice.describe(device),
         update_ms_mean: networks.update_ms_mean,
         critic_step_ms: networks.critic_step_ms,
         actor_step_ms: networks.actor_step_ms,

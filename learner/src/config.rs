@@ -304,6 +304,20 @@ impl DeviceChoice {
     }
 }
 
+impl DeviceChoice {
+    /// The device for reports: the choice and, on a GPU, the part Burn
+    /// opened (`wgpu (llvmpipe (LLVM 15.0.6, 256 bits))`).
+    pub fn describe(self, device: &Device) -> String {
+        let name = format!("{self:?}").to_lowercase();
+        #[cfg(any(feature = "cuda", feature = "wgpu"))]
+        if let Some(identity) = device.identity() {
+            return format!("{name} ({})", identity.name);
+        }
+        let _ = device;
+        name
+    }
+}
+
 #[cfg(not(all(feature = "cuda", feature = "wgpu")))]
 fn missing(feature: &str) -> ConfigError {
     ConfigError::Invalid {

@@ -10,6 +10,7 @@ pub mod config;
 pub mod divergence;
 pub mod durable_write;
 pub mod episodes;
+pub mod fused_updates;
 pub mod learner_state;
 pub mod limiter;
 pub mod loopback;

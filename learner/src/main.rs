@@ -2,7 +2,6 @@
 //! prints the effective configuration, `bench` measures the parts.
 
 use anyhow::bail;
-use burn::tensor::Device;
 use clap::{Parser, Subcommand};
 use std::net::SocketAddr;
 use std::path::PathBuf;
@@ -59,7 +58,7 @@ enum Command {
     /// Print the effective configuration (the file over the defaults of
     /// `docs/spec.md`) as TOML.
     Config,
-    /// Measure TD3 updates, inference and replay memory on the CPU.
+    /// Measure TD3 updates, inference and replay memory on `learner.device`.
     Bench {
         /// TD3 updates timed (rounded up to an even number).
         #[arg(long, default_value_t = 4)]
@@ -134,12 +133,13 @@ fn main() -> anyhow::Result<()> {
                 batch_size.unwrap_or(config.learner.batch_size),
                 replay_capacity,
                 updates,
-                &Device::flex(),
+                config.learner.device,
             )?;
             if json {
                 println!("{}", serde_json::to_string(&report)?);
             } else {
                 println!("networks                 {}", report.architecture);
+                println!("device                   {}", report.device);
                 println!(
                     "TD3 update, batch {:<6}  {:.2} ms",
                     report.batch_size, report.update_ms_mean

@@ -18,9 +18,10 @@
 //! (`replay`), the update-to-data ratio in the rate limiter (`limiter`), and
 //! the training thread that ties them together (`trainer`).
 
+use crate::fused_updates::{FusedAdam, blend};
 use burn::module::{Module, ModuleDisplay, ModuleMapper, ModuleVisitor, Param};
 use burn::nn::loss::{MseLoss, Reduction};
-use burn::optim::{AdamConfig, GradientsParams, ModuleOptimizer, OptimizerRecord};
+use burn::optim::{GradientsParams, ModuleOptimizer, OptimizerRecord};
 use burn::store::{ModuleRecord, RecordError};
 use burn::tensor::{Bytes, Device, Distribution, Tensor};
 use serde::{Deserialize, Serialize};
@@ -294,7 +295,7 @@ impl ModuleMapper for Blend {
             .next()
             .expect("target and online modules have the same parameters")
             .reshape(online.shape());
-        let blended = online * self.tau + old * (1.0 - self.tau);
+        let blended = blend(online, old, self.tau);
         Param::from_mapped_value(id, blended, mapper)
     }
 }
@@ -395,11 +396,9 @@ impl Td3Config {
     }
 }
 
-/// Adam with the configured epsilon.
+/// Adam with the configured epsilon, fused on the CPU.
 fn adam(config: &Td3Config) -> ModuleOptimizer {
-    AdamConfig::new()
-        .with_epsilon(config.adam_epsilon as f32)
-        .init()
+    ModuleOptimizer::from(FusedAdam::new(config.adam_epsilon as f32))
 }
 
 impl<N: Networks> Td3<N> {

@@ -1,8 +1,7 @@
 //! `learner bench` on a small configuration: every figure is measured.
 
-use burn::tensor::Device;
 use tweezer_learner::bench::LearnerBench;
-use tweezer_learner::config::{NetworkConfig, SetNetworkConfig};
+use tweezer_learner::config::{DeviceChoice, NetworkConfig, SetNetworkConfig};
 
 #[test]
 fn the_bench_measures_every_figure_of_a_small_configuration() {
@@ -17,10 +16,11 @@ fn the_bench_measures_every_figure_of_a_small_configuration() {
     let set = NetworkConfig::Set(SetNetworkConfig::default());
     for network in [paper, set] {
         let report =
-            tweezer_learner::bench::run(&env, &network, 32, 2_000, 2, &Device::flex()).unwrap();
+            tweezer_learner::bench::run(&env, &network, 32, 2_000, 2, DeviceChoice::Flex).unwrap();
         check(&report);
         let name = network.architecture(&env).name();
         assert!(report.architecture.starts_with(name), "{report:?}");
+        assert_eq!(report.device, "flex", "{report:?}");
     }
 }
 

@@ -1,5 +1,6 @@
 //! The convolutional trunk both networks share in shape (not in weights).
 
+use crate::batch_conv::{self, batch_conv2d};
 use burn::config::Config;
 use burn::module::Module;
 use burn::nn::conv::{Conv2d, Conv2dConfig};
@@ -75,10 +76,21 @@ impl Encoder {
     /// - `image`: `[batch, 1, height, width]`
     /// - output: `[batch, features]`
     pub fn forward(&self, image: Tensor<4>) -> Tensor<2> {
-        let x = relu(self.norm1.forward(self.conv1.forward(image))); // [batch, 32, h/4, w/4]
-        let x = relu(self.norm2.forward(self.conv2.forward(x))); // [batch, 64, h/8, w/8]
-        let x = relu(self.norm3.forward(self.conv3.forward(x))); // [batch, 64, h/8, w/8]
+        let x = relu(self.norm1.forward(conv(&self.conv1, image))); // [batch, 32, h/4, w/4]
+        let x = relu(self.norm2.forward(conv(&self.conv2, x))); // [batch, 64, h/8, w/8]
+        let x = relu(self.norm3.forward(conv(&self.conv3, x))); // [batch, 64, h/8, w/8]
         relu(self.fc.forward(x.flatten::<2>(1, 3))) // [batch, features]
+    }
+}
+
+/// `layer` applied to `x`: on the CPU as one matrix product over the batch
+/// ([`batch_conv`]), elsewhere by Burn.
+fn conv(layer: &Conv2d, x: Tensor<4>) -> Tensor<4> {
+    match (&layer.bias, &layer.padding) {
+        (Some(bias), PaddingConfig2d::Explicit(p, _, _, _)) if batch_conv::runs_on(&x.device()) => {
+            batch_conv2d(x, layer.weight.val(), bias.val(), layer.stride[0], *p)
+        }
+        _ => layer.forward(x),
     }
 }
 

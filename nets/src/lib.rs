@@ -14,6 +14,7 @@
 
 mod actor;
 mod architecture;
+mod batch_conv;
 mod critic;
 mod encoder;
 mod head;

@@ -1,0 +1,87 @@
+"""Runs `learner bench` and td3_update.py in alternation and prints the
+median update times and their ratio (ours / PyTorch's) per resolution."""
+
+import argparse
+import json
+import os
+import statistics
+import subprocess
+import sys
+import tempfile
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+RESOLUTIONS = [(40, 32), (320, 256)]
+
+
+def learner_bench(learner, width, height, updates, batch_size, config_dir):
+    config = os.path.join(config_dir, f"{width}x{height}.toml")
+    with open(config, "w") as f:
+        f.write(f"[env.image]\nwidth = {width}\nheight = {height}\n")
+    out = subprocess.run(
+        [learner, "--config", config, "bench", "--json", "--updates", str(updates),
+         "--batch-size", str(batch_size), "--replay-capacity", "20000"],
+        check=True, capture_output=True, text=True).stdout
+    return json.loads(out)
+
+
+def pytorch_bench(width, height, updates, batch_size, threads):
+    out = subprocess.run(
+        [sys.executable, os.path.join(HERE, "td3_update.py"), "--width", str(width),
+         "--height", str(height), "--updates", str(updates), "--batch-size", str(batch_size),
+         "--threads", str(threads)],
+        check=True, capture_output=True, text=True).stdout
+    return json.loads(out)
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--learner", required=True)
+    parser.add_argument("--reps", type=int, default=3, help="runs of each side per resolution")
+    parser.add_argument("--updates", type=int, default=0,
+                        help="updates timed per run (default: 40 at 40 x 32, 6 at 320 x 256)")
+    parser.add_argument("--batch-size", type=int, default=32)
+    parser.add_argument("--threads", type=int, default=os.cpu_count(),
+                        help="PyTorch's threads (the learner uses every core)")
+    parser.add_argument("--json", action="store_true")
+    args = parser.parse_args()
+
+    results = []
+    with tempfile.TemporaryDirectory() as config_dir:
+        for width, height in RESOLUTIONS:
+            updates = args.updates or (40 if width * height <= 64 * 64 else 6)
+            ours, theirs, device, peer = [], [], None, None
+            for _ in range(args.reps):
+                bench = learner_bench(args.learner, width, height, updates, args.batch_size,
+                                      config_dir)
+                ours.append(bench["update_ms_mean"])
+                device = bench.get("device", "flex")
+                torch = pytorch_bench(width, height, updates, args.batch_size, args.threads)
+                theirs.append(torch["update_ms_mean"])
+                peer = torch["peer"]
+            ours_ms, theirs_ms = statistics.median(ours), statistics.median(theirs)
+            results.append({
+                "resolution": [width, height],
+                "batch_size": args.batch_size,
+                "device": device,
+                "peer": peer,
+                "update_ms_median": ours_ms,
+                "peer_update_ms_median": theirs_ms,
+                "ratio": ours_ms / theirs_ms,
+                "update_ms_runs": ours,
+                "peer_update_ms_runs": theirs,
+            })
+
+    if args.json:
+        print(json.dumps(results))
+        return
+    print(f"{'resolution':<12}{'learner ms':>12}{'PyTorch ms':>12}{'ratio':>8}  runs")
+    for r in results:
+        w, h = r["resolution"]
+        print(f"{f'{w} x {h}':<12}{r['update_ms_median']:>12.1f}"
+              f"{r['peer_update_ms_median']:>12.1f}{r['ratio']:>8.2f}  {len(r['update_ms_runs'])}")
+    print(f"(medians; batch {args.batch_size}; {results[0]['peer']}; learner on "
+          f"{results[0]['device']})")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,265 @@
+//! The learner on Burn's wgpu backend (built with `--features wgpu`; CI
+//! runs it on Mesa's software Vulkan driver, lavapipe): TD3 updates agree
+//! with the CPU backend's, and `learner serve` trains over real gRPC.
+#![cfg(feature = "wgpu")]
+
+use burn::tensor::{Device, DeviceKind};
+use std::io::{BufRead, BufReader};
+use std::process::{Child, Command, Stdio};
+use std::time::{Duration, Instant};
+use tweezer_gym::{EnvConfig, ImageConfig, SplitMix64};
+use tweezer_learner::loopback::batches;
+use tweezer_learner::minibatch::minibatch_tensors;
+use tweezer_learner::replay::{Replay, ReplayConfig};
+use tweezer_learner::td3::{Td3, Td3Config, UpdateStats};
+use tweezer_nets::{Networks, PaperNetworks, SetNetworks, SetShape};
+use tweezer_proto::pb::learner_client::LearnerClient;
+use tweezer_rpc::{ClientSecurity, LoopbackCredentials, Security};
+
+fn wgpu() -> Device {
+    Device::wgpu(DeviceKind::DefaultDevice)
+}
+
+fn env() -> EnvConfig {
+    EnvConfig {
+        image: ImageConfig {
+            width: 40,
+            height: 32,
+        },
+        ..EnvConfig::default()
+    }
+}
+
+/// A replay of random-policy steps.
+fn replay(env: &EnvConfig) -> Replay {
+    let mut replay = Replay::new(ReplayConfig {
+        capacity: 2_000,
+        ..ReplayConfig::default()
+    });
+    for record in tweezer_gym::RandomSteps::new(env, 16, 3)
+        .unwrap()
+        .take(2_000)
+    {
+        replay.insert(0, &record).unwrap();
+    }
+    replay
+}
+
+/// `updates` TD3 updates of the same networks, from the same weights, on
+/// the same batches, on the CPU and on wgpu; target-policy noise off, so
+/// that nothing random differs.
+fn updates_on_both<N: Networks>(networks: N, updates: usize) -> Vec<(UpdateStats, UpdateStats)> {
+    let env = env();
+    let replay = replay(&env);
+    let config = Td3Config {
+        policy_noise: 0.0,
+        ..Td3Config::default()
+    };
+    let (flex, gpu) = (Device::flex().autodiff(), wgpu().autodiff());
+    let mut on_flex = Td3::new(config.clone(), networks.clone(), &flex).unwrap();
+    let mut on_gpu = Td3::new(config, networks.clone(), &gpu).unwrap();
+    let state = on_flex.save_state().unwrap();
+    on_gpu
+        .load_state(
+            |name| state.iter().find(|(n, _)| *n == name).map(|(_, b)| &b[..]),
+            0,
+        )
+        .unwrap();
+    let mut rng = SplitMix64::new(9);
+    (0..updates)
+        .map(|_| {
+            let sampled = replay.sample(16, &mut rng).unwrap();
+            let a = on_flex.update(minibatch_tensors(&sampled, &networks, &flex));
+            let b = on_gpu.update(minibatch_tensors(&sampled, &networks, &gpu));
+            (a, b)
+        })
+        .collect()
+}
+
+fn close(what: &str, a: f64, b: f64) {
+    assert!(
+        (a - b).abs() <= 1e-3 * a.abs().max(b.abs()).max(1.0),
+        "{what}: flex {a} vs wgpu {b}"
+    );
+}
+
+fn check(pairs: &[(UpdateStats, UpdateStats)]) {
+    for (i, (flex, gpu)) in pairs.iter().enumerate() {
+        close(
+            &format!("critic loss of update {i}"),
+            flex.critic_loss,
+            gpu.critic_loss,
+        );
+        close(&format!("mean Q of update {i}"), flex.mean_q, gpu.mean_q);
+        assert_eq!(flex.actor_loss.is_some(), gpu.actor_loss.is_some());
+        if let (Some(a), Some(b)) = (flex.actor_loss, gpu.actor_loss) {
+            close(&format!("actor loss of update {i}"), a, b);
+        }
+    }
+}
+
+#[test]
+fn cnn_updates_on_wgpu_agree_with_the_cpu() {
+    let networks = PaperNetworks::new(tweezer_gym::Renderer::for_config(&env()).unwrap());
+    check(&updates_on_both(networks, 4));
+}
+
+#[test]
+fn set_network_updates_on_wgpu_agree_with_the_cpu() {
+    let fov = env().fov_px;
+    let networks = SetNetworks::new(SetShape::new(fov), fov);
+    check(&updates_on_both(networks, 4));
+}
+
+/// `learner bench --json` says it ran on wgpu, and which GPU.
+#[test]
+fn learner_bench_reports_the_wgpu_device() {
+    let dir = tempfile::tempdir().unwrap();
+    let config = dir.path().join("config.toml");
+    std::fs::write(
+        &config,
+        "[env.image]\nwidth = 20\nheight = 16\n[learner]\ndevice = \"wgpu\"\n",
+    )
+    .unwrap();
+    let output = Command::new(env!("CARGO_BIN_EXE_learner"))
+        .arg("--config")
+        .arg(&config)
+        .args([
+            "bench",
+            "--json",
+            "--updates",
+            "2",
+            "--replay-capacity",
+            "2000",
+        ])
+        .output()
+        .unwrap();
+    assert!(output.status.success(), "{output:?}");
+    let report: serde_json::Value = serde_json::from_slice(&output.stdout).unwrap();
+    let device = report["device"].as_str().unwrap();
+    assert!(device.starts_with("wgpu ("), "{report}");
+    assert!(report["update_ms_mean"].as_f64().unwrap() > 0.0, "{report}");
+}
+
+/// `learner serve` with `device = "wgpu"`, fed random-policy steps over
+/// TLS, makes a few hundred updates and checkpoints on SIGTERM.
+#[test]
+fn learner_serve_trains_on_wgpu() {
+    let dir = tempfile::tempdir().unwrap();
+    let credentials = LoopbackCredentials::provision(&dir.path().join("security")).unwrap();
+    let config = dir.path().join("config.toml");
+    std::fs::write(
+        &config,
+        r#"
+[env]
+min_free_spheres = 0
+max_free_spheres = 0
+[env.image]
+width = 20
+height = 16
+
+[learner]
+listen = "127.0.0.1:0"
+device = "wgpu"
+uniform_steps = 200
+[learner.replay]
+capacity = 20000
+# Ingest never waits for the updates (on lavapipe ~0.3 s each).
+[learner.limiter]
+min_size = 200
+updates_per_insert = 0.1
+slack = 1000
+[learner.checkpoints]
+every_seconds = 0
+"#,
+    )
+    .unwrap();
+    let run = dir.path().join("run");
+    let mut learner = Command::new(env!("CARGO_BIN_EXE_learner"))
+        .arg("--config")
+        .arg(&config)
+        .arg("serve")
+        .arg("--security")
+        .arg(&credentials.learner)
+        .arg("--run-dir")
+        .arg(&run)
+        .stdout(Stdio::piped())
+        .stderr(Stdio::inherit())
+        .spawn()
+        .unwrap();
+    let stdout = learner.stdout.take().unwrap();
+    let stopped = Stopped(&mut learner);
+    let mut line = String::new();
+    BufReader::new(stdout).read_line(&mut line).unwrap();
+    let addr = line
+        .trim()
+        .strip_prefix("learner listening on ")
+        .unwrap_or_else(|| panic!("unexpected first line {line:?}"))
+        .to_string();
+
+    let env: EnvConfig = toml::from_str::<toml::Table>(&std::fs::read_to_string(&config).unwrap())
+        .unwrap()["env"]
+        .clone()
+        .try_into()
+        .unwrap();
+    let runtime = tokio::runtime::Runtime::new().unwrap();
+    let client = ClientSecurity::load(&Security::load(Some(&credentials.actor)).unwrap()).unwrap();
+    let status = runtime.block_on(async {
+        let channel = client
+            .connect(&addr, Duration::from_secs(10))
+            .await
+            .unwrap();
+        let mut learner = LearnerClient::new(channel);
+        let mut acks = learner
+            .stream_steps(tokio_stream::iter(
+                batches(&env, "gpu", 8, 60, 64, 1).unwrap(),
+            ))
+            .await
+            .unwrap()
+            .into_inner();
+        while acks.message().await.unwrap().is_some() {}
+        let deadline = Instant::now() + Duration::from_secs(300);
+        loop {
+            let status = tweezer_rpc::learner_status(&mut learner).await.unwrap();
+            if status.updates >= 300 {
+                break status;
+            }
+            assert!(Instant::now() < deadline, "never 300 updates: {status:?}");
+            tokio::time::sleep(Duration::from_millis(200)).await;
+        }
+    });
+    assert!(status.updates >= 300, "{status:?}");
+
+    drop(stopped);
+    let checkpoints: Vec<_> = std::fs::read_dir(run.join("checkpoints"))
+        .unwrap()
+        .collect();
+    assert!(!checkpoints.is_empty(), "no checkpoint written on SIGTERM");
+}
+
+/// Stops the learner with SIGTERM when dropped and waits (bounded) for it
+/// to exit cleanly.
+struct Stopped<'a>(&'a mut Child);
+
+impl Drop for Stopped<'_> {
+    fn drop(&mut self) {
+        let _ = Command::new("kill")
+            .args(["-TERM", &self.0.id().to_string()])
+            .status();
+        let deadline = Instant::now() + Duration::from_secs(120);
+        while Instant::now() < deadline {
+            if let Ok(Some(status)) = self.0.try_wait() {
+                if !std::thread::panicking() {
+                    assert!(status.success(), "learner exited with {status}");
+                }
+                return;
+            }
+            std::thread::sleep(Duration::from_millis(100));
+        }
+        let _ = self.0.kill();
+        let _ = self.0.wait();
+        if !std::thread::panicking() {
+            panic!("learner did not stop within 120 s of SIGTERM");
+        }
+    }
+}

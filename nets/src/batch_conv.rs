@@ -1,0 +1,481 @@
+//! The encoder's convolutions on Burn's CPU backend (flex), forward and
+//! backward, each as one matrix product over the whole batch.
+//!
+//! Burn's own CPU convolution multiplies one image at a time (at 40 × 32
+//! the second layer is 32 products of 64 × 512 by 512 × 20) and computes
+//! the weight gradient as a convolution with the batch as channels and the
+//! output gradient as kernel. Here the batch's patches become one column
+//! matrix (im2col, `[in channels × k × k, batch × out pixels]`), and
+//!
+//! - forward: `y = W · cols + b`,
+//! - weight gradient: `dW = dy · colsᵀ`, bias gradient: `db = Σ dy`,
+//! - input gradient (when the input needs one): `dcols = Wᵀ · dy`, added
+//!   back into the image (col2im),
+//!
+//! each product one GEMM on Burn's own matrix multiplication (transposes are
+//! views, not copies). It is the same convolution: the tests check it
+//! against Burn's to 1e-4, forward and gradients. Other devices (wgpu,
+//! cuda) keep Burn's convolution.
+
+use burn::backend::autodiff::NodeId;
+use burn::backend::autodiff::checkpoint::base::Checkpointer;
+use burn::backend::autodiff::checkpoint::strategy::CheckpointStrategy;
+use burn::backend::autodiff::grads::Gradients;
+use burn::backend::autodiff::ops::{Backward, Ops, OpsKind};
+use burn::backend::tensor::FloatTensor;
+use burn::backend::{Autodiff, Backend, Dispatch, DispatchDevice, Flex, backend_extension};
+use burn::tensor::{Bytes, DType, Shape, Tensor};
+use burn_flex::{FlexTensor, Layout};
+use rayon::prelude::*;
+use std::ops::Range;
+
+/// A convolution with square kernels, equal stride and padding on both
+/// axes, and a bias: what the encoder's three layers are.
+#[backend_extension(Flex, Autodiff)]
+pub trait BatchConv: Backend {
+    /// `x` `[batch, in, h, w]`, `weight` `[out, in, k, k]`, `bias` `[out]`
+    /// → `[batch, out, oh, ow]`.
+    fn batch_conv2d(
+        x: FloatTensor<Self>,
+        weight: FloatTensor<Self>,
+        bias: FloatTensor<Self>,
+        stride: usize,
+        padding: usize,
+    ) -> FloatTensor<Self>;
+}
+
+/// Whether `batch_conv2d` runs on tensors of `device`: Burn's CPU backend,
+/// with or without autodiff.
+pub fn runs_on(device: &burn::tensor::Device) -> bool {
+    matches!(
+        device.clone().inner().as_dispatch(),
+        DispatchDevice::Flex(_)
+    )
+}
+
+/// The convolution of `x` by `weight` and `bias` (see [`BatchConv`]); only
+/// on devices where [`runs_on`] holds.
+pub fn batch_conv2d(
+    x: Tensor<4>,
+    weight: Tensor<4>,
+    bias: Tensor<1>,
+    stride: usize,
+    padding: usize,
+) -> Tensor<4> {
+    Tensor::from_dispatch(<Dispatch as BatchConv>::batch_conv2d(
+        x.into_dispatch(),
+        weight.into_dispatch(),
+        bias.into_dispatch(),
+        stride,
+        padding,
+    ))
+}
+
+impl BatchConv for Flex {
+    fn batch_conv2d(
+        x: FlexTensor,
+        weight: FlexTensor,
+        bias: FlexTensor,
+        stride: usize,
+        padding: usize,
+    ) -> FlexTensor {
+        forward(
+            &x,
+            &weight,
+            &bias,
+            Geometry::of(&x, &weight, stride, padding),
+        )
+    }
+}
+
+/// The backward step: which inputs need gradients is known only then.
+#[derive(Debug)]
+struct BatchConvBackward;
+
+impl Backward<Flex, 3> for BatchConvBackward {
+    /// The checkpointed input and weight, stride and padding.
+    type State = (NodeId, NodeId, usize, usize);
+
+    fn backward(self, ops: Ops<Self::State, 3>, grads: &mut Gradients, cp: &mut Checkpointer) {
+        let [node_x, node_weight, node_bias] = ops.parents;
+        let grad: FlexTensor = grads.consume::<Flex>(&ops.node);
+        let (x, weight, stride, padding) = ops.state;
+        let x: FlexTensor = cp.retrieve_node_output(x);
+        let weight: FlexTensor = cp.retrieve_node_output(weight);
+        let geometry = Geometry::of(&x, &weight, stride, padding);
+        let g = backward(&x, &weight, &grad, geometry, node_x.is_some());
+        if let (Some(node), Some(dx)) = (node_x, g.x) {
+            grads.register::<Flex>(node.id, dx);
+        }
+        if let Some(node) = node_weight {
+            grads.register::<Flex>(node.id, g.weight);
+        }
+        if let Some(node) = node_bias {
+            grads.register::<Flex>(node.id, g.bias);
+        }
+    }
+}
+
+impl<C: CheckpointStrategy> BatchConv for Autodiff<Flex, C> {
+    fn batch_conv2d(
+        x: FloatTensor<Self>,
+        weight: FloatTensor<Self>,
+        bias: FloatTensor<Self>,
+        stride: usize,
+        padding: usize,
+    ) -> FloatTensor<Self> {
+        let nodes = [x.node(), weight.node(), bias.node()];
+        match BatchConvBackward
+            .prepare::<C>(nodes)
+            .compute_bound()
+            .stateful()
+        {
+            OpsKind::Tracked(mut prep) => {
+                let state = (
+                    prep.checkpoint(&x),
+                    prep.checkpoint(&weight),
+                    stride,
+                    padding,
+                );
+                let (x, weight, bias) = (
+                    x.into_primitive(),
+                    weight.into_primitive(),
+                    bias.into_primitive(),
+                );
+                let geometry = Geometry::of(&x, &weight, stride, padding);
+                prep.finish(state, forward(&x, &weight, &bias, geometry))
+            }
+            OpsKind::UnTracked(prep) => {
+                let (x, weight, bias) = (
+                    x.into_primitive(),
+                    weight.into_primitive(),
+                    bias.into_primitive(),
+                );
+                let geometry = Geometry::of(&x, &weight, stride, padding);
+                prep.finish(forward(&x, &weight, &bias, geometry))
+            }
+        }
+    }
+}
+
+/// Sizes of one convolution.
+#[derive(Clone, Copy, Debug)]
+struct Geometry {
+    batch: usize,
+    channels_in: usize,
+    height: usize,
+    width: usize,
+    channels_out: usize,
+    kernel: usize,
+    stride: usize,
+    padding: usize,
+    out_height: usize,
+    out_width: usize,
+}
+
+impl Geometry {
+    fn of(x: &FlexTensor, weight: &FlexTensor, stride: usize, padding: usize) -> Self {
+        let xs = x.layout().shape();
+        let ws = weight.layout().shape();
+        assert!(
+            xs.num_dims() == 4 && ws.num_dims() == 4 && xs[1] == ws[1] && ws[2] == ws[3],
+            "batch_conv2d: input {xs:?} and weight {ws:?} do not fit"
+        );
+        let out = |size: usize| (size + 2 * padding - ws[2]) / stride + 1;
+        Self {
+            batch: xs[0],
+            channels_in: xs[1],
+            height: xs[2],
+            width: xs[3],
+            channels_out: ws[0],
+            kernel: ws[2],
+            stride,
+            padding,
+            out_height: out(xs[2]),
+            out_width: out(xs[3]),
+        }
+    }
+
+    /// Rows of the column matrix: in channels × kernel².
+    fn patch(&self) -> usize {
+        self.channels_in * self.kernel * self.kernel
+    }
+
+    /// Output pixels of one image.
+    fn out_pixels(&self) -> usize {
+        self.out_height * self.out_width
+    }
+
+    /// Images per column matrix: enough for a product of ~2,000 columns (the
+    /// whole batch at 40 × 32), one at a time where an image alone has
+    /// more (320 × 256), so that the matrix stays a few megabytes.
+    fn chunk(&self) -> usize {
+        (2048 / self.out_pixels()).clamp(1, self.batch)
+    }
+
+    /// The output rows (or columns) `o` of `outs` whose input row `o ·
+    /// stride + k − padding` lies inside `0..size`.
+    fn inside(&self, k: usize, size: usize, outs: usize) -> Range<usize> {
+        let first = self.padding.saturating_sub(k).div_ceil(self.stride);
+        let end = (size + self.padding)
+            .checked_sub(k + 1)
+            .map_or(0, |last| last / self.stride + 1)
+            .min(outs);
+        first.min(end)..end
+    }
+}
+
+/// A contiguous f32 tensor of `shape` holding `values`.
+fn tensor(values: Vec<f32>, shape: impl Into<Shape>) -> FlexTensor {
+    FlexTensor::new(
+        Bytes::from_elems(values),
+        Layout::contiguous(shape.into()),
+        DType::F32,
+    )
+}
+
+/// The images `images` of `x` (`[batch, in, h, w]`) as a column matrix
+/// `[patch, images × out pixels]`: row (c, ky, kx), column (image, oy, ox)
+/// holds `x[image, c, oy·s + ky − p, ox·s + kx − p]`, zero outside.
+fn im2col(x: &[f32], g: Geometry, images: Range<usize>) -> FlexTensor {
+    let (k, plane, n) = (g.kernel, g.height * g.width, g.out_pixels());
+    let columns = images.len() * n;
+    let mut cols = vec![0f32; g.patch() * columns];
+    cols.par_chunks_mut(columns)
+        .enumerate()
+        .for_each(|(row, col)| {
+            let (c, ky, kx) = (row / (k * k), row / k % k, row % k);
+            let (ys, xs) = (
+                g.inside(ky, g.height, g.out_height),
+                g.inside(kx, g.width, g.out_width),
+            );
+            for (image, out) in images.clone().zip(col.chunks_exact_mut(n)) {
+                let channel = &x[(image * g.channels_in + c) * plane..][..plane];
+                for oy in ys.clone() {
+                    let line = &channel[(oy * g.stride + ky - g.padding) * g.width..][..g.width];
+                    let out = &mut out[oy * g.out_width..][xs.clone()];
+                    let first = xs.start * g.stride + kx - g.padding;
+                    if g.stride == 1 {
+                        out.copy_from_slice(&line[first..][..out.len()]);
+                    } else {
+                        let src = line[first..].iter().step_by(g.stride);
+                        for (v, s) in out.iter_mut().zip(src) {
+                            *v = *s;
+                        }
+                    }
+                }
+            }
+        });
+    tensor(cols, [g.patch(), columns])
+}
+
+/// Adds the gradient of a column matrix of `images` back into those
+/// images' planes of `dx` (`[batch, in, h, w]`): the transpose of
+/// [`im2col`].
+fn col2im(dx: &mut [f32], dcols: &[f32], g: Geometry, images: Range<usize>) {
+    let (k, plane, n) = (g.kernel, g.height * g.width, g.out_pixels());
+    let columns = images.len() * n;
+    let planes = &mut dx[images.start * g.channels_in * plane..images.end * g.channels_in * plane];
+    planes
+        .par_chunks_mut(plane)
+        .enumerate()
+        .for_each(|(index, channel)| {
+            let (image, c) = (index / g.channels_in, index % g.channels_in);
+            for (ky, kx) in (0..k).flat_map(|ky| (0..k).map(move |kx| (ky, kx))) {
+                let row = (c * k + ky) * k + kx;
+                let d = &dcols[row * columns + image * n..][..n];
+                let xs = g.inside(kx, g.width, g.out_width);
+                for oy in g.inside(ky, g.height, g.out_height) {
+                    let line =
+                        &mut channel[(oy * g.stride + ky - g.padding) * g.width..][..g.width];
+                    let first = xs.start * g.stride + kx - g.padding;
+                    let d = &d[oy * g.out_width..][xs.clone()];
+                    if g.stride == 1 {
+                        for (v, d) in line[first..][..d.len()].iter_mut().zip(d) {
+                            *v += d;
+                        }
+                    } else {
+                        for (v, d) in line[first..].iter_mut().step_by(g.stride).zip(d) {
+                            *v += d;
+                        }
+                    }
+                }
+            }
+        });
+}
+
+/// The batch in chunks of [`Geometry::chunk`] images.
+fn chunks(g: Geometry) -> impl Iterator<Item = Range<usize>> {
+    (0..g.batch)
+        .step_by(g.chunk())
+        .map(move |start| start..(start + g.chunk()).min(g.batch))
+}
+
+fn forward(x: &FlexTensor, weight: &FlexTensor, bias: &FlexTensor, g: Geometry) -> FlexTensor {
+    let x = x.to_contiguous();
+    let weight = weight.reshape(Shape::from([g.channels_out, g.patch()]));
+    let bias = bias.to_contiguous();
+    let bias = bias.storage::<f32>();
+    let n = g.out_pixels();
+    let mut out = vec![0f32; g.batch * g.channels_out * n];
+    for images in chunks(g) {
+        // [out, images × out pixels] → [images, out, out pixels], plus the
+        // bias.
+        let y =
+            burn_flex::ops::matmul::matmul(weight.clone(), im2col(x.storage(), g, images.clone()));
+        let y = y.storage::<f32>();
+        let columns = images.len() * n;
+        out[images.start * g.channels_out * n..images.end * g.channels_out * n]
+            .par_chunks_mut(n)
+            .enumerate()
+            .for_each(|(index, plane)| {
+                let (image, c) = (index / g.channels_out, index % g.channels_out);
+                let src = &y[c * columns + image * n..][..n];
+                for (o, s) in plane.iter_mut().zip(src) {
+                    *o = s + bias[c];
+                }
+            });
+    }
+    tensor(out, [g.batch, g.channels_out, g.out_height, g.out_width])
+}
+
+/// The gradients of one convolution.
+struct Grads {
+    x: Option<FlexTensor>,
+    weight: FlexTensor,
+    bias: FlexTensor,
+}
+
+fn backward(
+    x: &FlexTensor,
+    weight: &FlexTensor,
+    grad: &FlexTensor,
+    g: Geometry,
+    input_grad: bool,
+) -> Grads {
+    let (x, grad) = (x.to_contiguous(), grad.to_contiguous());
+    let dy = grad.storage::<f32>();
+    let weight_t = weight
+        .reshape(Shape::from([g.channels_out, g.patch()]))
+        .transpose(0, 1);
+    let n = g.out_pixels();
+    let mut dweight = vec![0f32; g.channels_out * g.patch()];
+    let mut dbias = vec![0f32; g.channels_out];
+    let mut dx = input_grad.then(|| vec![0f32; g.batch * g.channels_in * g.height * g.width]);
+    for images in chunks(g) {
+        // dy of these images `[images, out, out pixels]` → `[out, images ×
+        // out pixels]`.
+        let columns = images.len() * n;
+        let mut dyt = vec![0f32; g.channels_out * columns];
+        dyt.par_chunks_mut(columns)
+            .enumerate()
+            .for_each(|(c, row)| {
+                for (image, dst) in images.clone().zip(row.chunks_exact_mut(n)) {
+                    dst.copy_from_slice(&dy[(image * g.channels_out + c) * n..][..n]);
+                }
+            });
+        for (db, row) in dbias.iter_mut().zip(dyt.chunks_exact(columns)) {
+            *db += row.iter().sum::<f32>();
+        }
+        let dyt = tensor(dyt, [g.channels_out, columns]);
+        let cols = im2col(x.storage(), g, images.clone());
+        let dw = burn_flex::ops::matmul::matmul(dyt.clone(), cols.transpose(0, 1));
+        for (a, d) in dweight.iter_mut().zip(dw.storage::<f32>()) {
+            *a += d;
+        }
+        if let Some(dx) = dx.as_mut() {
+            let dcols = burn_flex::ops::matmul::matmul(weight_t.clone(), dyt);
+            col2im(dx, dcols.storage(), g, images);
+        }
+    }
+    Grads {
+        x: dx.map(|dx| tensor(dx, [g.batch, g.channels_in, g.height, g.width])),
+        weight: tensor(dweight, [g.channels_out, g.channels_in, g.kernel, g.kernel]),
+        bias: tensor(dbias, [g.channels_out]),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use burn::module::Param;
+    use burn::nn::PaddingConfig2d;
+    use burn::nn::conv::Conv2dConfig;
+    use burn::tensor::{Device, Distribution};
+
+    /// Burn's convolution and this one on the same random input and
+    /// weights: outputs, and the gradients of a random linear function of
+    /// the output, to 1e-4.
+    fn check(
+        batch: usize,
+        channels: [usize; 2],
+        size: [usize; 2],
+        kernel: usize,
+        stride: usize,
+        padding: usize,
+    ) {
+        let device = Device::flex().autodiff();
+        device.seed(11);
+        let conv = Conv2dConfig::new(channels, [kernel, kernel])
+            .with_stride([stride, stride])
+            .with_padding(PaddingConfig2d::Explicit(
+                padding, padding, padding, padding,
+            ))
+            .init(&device);
+        let x = Tensor::<4>::random(
+            [batch, channels[0], size[0], size[1]],
+            Distribution::Normal(0.0, 1.0),
+            &device,
+        );
+        let out = |s: usize| (s + 2 * padding - kernel) / stride + 1;
+        let probe = Tensor::<4>::random(
+            [batch, channels[1], out(size[0]), out(size[1])],
+            Distribution::Normal(0.0, 1.0),
+            &device,
+        )
+        .detach();
+        let run = |fast: bool| {
+            let x = Param::from_tensor(x.clone().detach()).val();
+            let weight = conv.weight.val();
+            let bias = conv.bias.as_ref().expect("bias").val();
+            let y = if fast {
+                batch_conv2d(x.clone(), weight.clone(), bias.clone(), stride, padding)
+            } else {
+                conv.forward(x.clone())
+            };
+            let grads = (y.clone() * probe.clone()).sum().backward();
+            let grad = |t: &Tensor<4>| t.grad(&grads).expect("gradient").into_data();
+            (
+                y.into_data(),
+                grad(&x),
+                grad(&weight),
+                bias.grad(&grads).expect("bias gradient").into_data(),
+            )
+        };
+        let plain = run(false);
+        let fast = run(true);
+        // 1e-4 of the value, or absolutely where it is near zero: sums of
+        // thousands of terms in another order differ in the last bits.
+        let tolerance = burn::tensor::Tolerance::rel_abs(1e-4, 1e-4);
+        fast.0.assert_approx_eq::<f32>(&plain.0, tolerance);
+        fast.1.assert_approx_eq::<f32>(&plain.1, tolerance);
+        fast.2.assert_approx_eq::<f32>(&plain.2, tolerance);
+        fast.3.assert_approx_eq::<f32>(&plain.3, tolerance);
+    }
+
+    #[test]
+    fn each_layer_of_the_encoder_matches_burns_convolution() {
+        check(3, [1, 32], [32, 40], 8, 4, 2);
+        check(3, [32, 64], [8, 10], 4, 2, 1);
+        check(3, [64, 64], [4, 5], 3, 1, 1);
+        check(2, [1, 32], [37, 29], 8, 4, 2);
+    }
+
+    #[test]
+    fn batches_split_into_chunks_match_too() {
+        // 100 output pixels an image: chunks of 20, 20 and 5 images.
+        check(45, [3, 5], [10, 10], 3, 1, 1);
+        // 1,600: one image at a time.
+        check(4, [2, 3], [40, 40], 3, 1, 1);
+    }
+}
