@@ -10,19 +10,20 @@
 //! Other devices (wgpu, cuda) run Burn's operations.
 
 use burn::backend::tensor::FloatTensor;
-use burn::backend::{Backend, Dispatch, DispatchDevice, Flex, backend_extension};
+use burn::backend::{Backend, Dispatch, Flex, backend_extension};
 use burn::optim::LearningRate;
 use burn::optim::{Adam, AdamConfig, AdamState, AdaptiveMomentumState, Optimizer};
 use burn::tensor::{Device, Tensor};
 use burn_flex::FlexTensor;
 use rayon::prelude::*;
+use tweezer_nets::is_cpu_backend;
 
 /// Elements per parallel task.
 const CHUNK: usize = 1 << 14;
 
 /// `online · tau + old · (1 − tau)`, one pass on the CPU backend.
 pub fn blend<const D: usize>(online: Tensor<D>, old: Tensor<D>, tau: f64) -> Tensor<D> {
-    if !on_cpu(&online.device()) {
+    if !is_cpu_backend(&online.device()) {
         return online * tau + old * (1.0 - tau);
     }
     Tensor::from_dispatch(<Dispatch as FusedUpdates>::fused_blend(
@@ -30,14 +31,6 @@ pub fn blend<const D: usize>(online: Tensor<D>, old: Tensor<D>, tau: f64) -> Ten
         old.into_dispatch(),
         tau,
     ))
-}
-
-/// Whether the fused kernels run on `device`: Burn's CPU backend.
-fn on_cpu(device: &Device) -> bool {
-    matches!(
-        device.clone().inner().as_dispatch(),
-        DispatchDevice::Flex(_)
-    )
 }
 
 /// Adam's constants for one step.
@@ -172,7 +165,7 @@ impl Optimizer for FusedAdam {
         grad: Tensor<D>,
         state: Option<Self::State<D>>,
     ) -> (Tensor<D>, Option<Self::State<D>>) {
-        if !on_cpu(&tensor.device()) {
+        if !is_cpu_backend(&tensor.device()) {
             return self.burn.step(lr, tensor, grad, state);
         }
         let (time, moment_1, moment_2) = match state {

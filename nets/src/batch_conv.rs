@@ -46,9 +46,9 @@ pub trait BatchConv: Backend {
     ) -> FloatTensor<Self>;
 }
 
-/// Whether `batch_conv2d` runs on tensors of `device`: Burn's CPU backend,
-/// with or without autodiff.
-pub fn runs_on(device: &burn::tensor::Device) -> bool {
+/// Whether `device` is Burn's CPU backend (flex), with or without autodiff:
+/// where [`batch_conv2d`] and the learner's fused updates run.
+pub fn is_cpu_backend(device: &burn::tensor::Device) -> bool {
     matches!(
         device.clone().inner().as_dispatch(),
         DispatchDevice::Flex(_)
@@ -56,7 +56,7 @@ pub fn runs_on(device: &burn::tensor::Device) -> bool {
 }
 
 /// The convolution of `x` by `weight` and `bias` (see [`BatchConv`]); only
-/// on devices where [`runs_on`] holds.
+/// on devices where [`is_cpu_backend`] holds.
 pub fn batch_conv2d(
     x: Tensor<4>,
     weight: Tensor<4>,
@@ -127,6 +127,12 @@ impl<C: CheckpointStrategy> BatchConv for Autodiff<Flex, C> {
         padding: usize,
     ) -> FloatTensor<Self> {
         let nodes = [x.node(), weight.node(), bias.node()];
+        let convolve =
+            |x: FloatTensor<Self>, weight: FloatTensor<Self>, bias: FloatTensor<Self>| {
+                let (x, weight) = (x.into_primitive(), weight.into_primitive());
+                let geometry = Geometry::of(&x, &weight, stride, padding);
+                forward(&x, &weight, &bias.into_primitive(), geometry)
+            };
         match BatchConvBackward
             .prepare::<C>(nodes)
             .compute_bound()
@@ -139,23 +145,9 @@ impl<C: CheckpointStrategy> BatchConv for Autodiff<Flex, C> {
                     stride,
                     padding,
                 );
-                let (x, weight, bias) = (
-                    x.into_primitive(),
-                    weight.into_primitive(),
-                    bias.into_primitive(),
-                );
-                let geometry = Geometry::of(&x, &weight, stride, padding);
-                prep.finish(state, forward(&x, &weight, &bias, geometry))
+                prep.finish(state, convolve(x, weight, bias))
             }
-            OpsKind::UnTracked(prep) => {
-                let (x, weight, bias) = (
-                    x.into_primitive(),
-                    weight.into_primitive(),
-                    bias.into_primitive(),
-                );
-                let geometry = Geometry::of(&x, &weight, stride, padding);
-                prep.finish(forward(&x, &weight, &bias, geometry))
-            }
+            OpsKind::UnTracked(prep) => prep.finish(convolve(x, weight, bias)),
         }
     }
 }

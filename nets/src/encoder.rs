@@ -87,7 +87,9 @@ impl Encoder {
 /// ([`batch_conv`]), elsewhere by Burn.
 fn conv(layer: &Conv2d, x: Tensor<4>) -> Tensor<4> {
     match (&layer.bias, &layer.padding) {
-        (Some(bias), PaddingConfig2d::Explicit(p, _, _, _)) if batch_conv::runs_on(&x.device()) => {
+        (Some(bias), PaddingConfig2d::Explicit(p, _, _, _))
+            if batch_conv::is_cpu_backend(&x.device()) =>
+        {
             batch_conv2d(x, layer.weight.val(), bias.val(), layer.stride[0], *p)
         }
         _ => layer.forward(x),

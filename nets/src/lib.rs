@@ -31,6 +31,7 @@ pub use actor::{Actor, ActorConfig};
 pub use architecture::{
     Architecture, ArchitectureError, PAPER_ARCHITECTURE, Pooling, SET_ARCHITECTURE, SetShape,
 };
+pub use batch_conv::is_cpu_backend;
 pub use critic::{Critic, CriticConfig};
 pub use encoder::{Encoder, EncoderConfig};
 pub use head::{Head, HeadConfig};
