@@ -92,8 +92,11 @@ def main(port, auto_port):
     )
     auto.set_enabled(True)
     auto.set_velocity_params(acceleration=2 * 264, max_velocity=VELOCITY_PER_MM_S)
-    time.sleep(0.5)
     moving = auto.status_[0][0]
+    # The library asks for updates 0.25 s after opening the port; until the
+    # first arrives its position is a placeholder 0 (the simulated motor
+    # starts 6 mm from the reverse limit, so no real reading is 0).
+    seen["first_update"] = wait(lambda: moving["position"] != 0)
     start, target = moving["position"], int(3.0 * COUNTS_PER_MM)
     auto.move_absolute(target)
     # A position on the way: no MOVE_COMPLETED carries one.

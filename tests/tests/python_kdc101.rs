@@ -70,6 +70,10 @@ fn thorlabs_apt_device_homes_moves_and_reads_the_simulated_kdc101() {
     assert!(first.signum() == -second.signum(), "{seen}");
     assert_eq!(seen["stopped"], true);
     assert_eq!(
+        seen["first_update"], true,
+        "no status update within 15 s of HW_START_UPDATEMSGS: {seen}"
+    );
+    assert_eq!(
         seen["auto_updates"], true,
         "no status updates after HW_START_UPDATEMSGS: {seen}"
     );
