@@ -19,7 +19,7 @@
 //! the training thread that ties them together (`trainer`).
 
 use crate::fused_updates::{FusedAdam, blend};
-use burn::module::{Module, ModuleDisplay, ModuleMapper, ModuleVisitor, Param};
+use burn::module::{Module, ModuleDisplay, ModuleMapper, Param};
 use burn::nn::loss::{MseLoss, Reduction};
 use burn::optim::{GradientsParams, ModuleOptimizer, OptimizerRecord};
 use burn::store::{ModuleRecord, RecordError};
@@ -104,6 +104,10 @@ impl<N: Networks> Td3<N> {
 
     /// The critics' step: targets, the critic loss, backward, Adam.
     pub fn critic_step(&mut self, batch: &Minibatch<N::Input>) -> CriticStats {
+        on_worker(|| self.critic_step_here(batch))
+    }
+
+    fn critic_step_here(&mut self, batch: &Minibatch<N::Input>) -> CriticStats {
         let c = &self.config;
         let Minibatch {
             input,
@@ -164,9 +168,11 @@ impl<N: Networks> Td3<N> {
             mean_q: scalar(&q1.mean()),
         };
         let grads = GradientsParams::from_grads(critic_loss.backward(), &self.critics);
-        self.critics = self
-            .critic_optim
-            .step(c.critic_lr, self.critics.clone(), grads);
+        let optim = &mut self.critic_optim;
+        let stand_in = self.critics_target.clone();
+        replace_with(&mut self.critics, stand_in, |critics| {
+            optim.step(c.critic_lr, critics, grads)
+        });
         self.updates += 1;
         stats
     }
@@ -180,6 +186,10 @@ impl<N: Networks> Td3<N> {
     /// The delayed policy step and the soft target updates; returns the
     /// actor's loss.
     pub fn actor_step(&mut self, batch: Minibatch<N::Input>) -> f64 {
+        on_worker(|| self.actor_step_here(batch))
+    }
+
+    fn actor_step_here(&mut self, batch: Minibatch<N::Input>) -> f64 {
         let c = &self.config;
         let Minibatch { input, vector, .. } = batch;
         // Actor loss: −Q1(s, π(s)), plus the optional action penalty.
@@ -193,10 +203,19 @@ impl<N: Networks> Td3<N> {
         let loss = q.mean().neg() + penalty;
         let actor_loss = scalar(&loss);
         let grads = GradientsParams::from_grads(loss.backward(), &self.actor);
-        self.actor = self.actor_optim.step(c.actor_lr, self.actor.clone(), grads);
+        let optim = &mut self.actor_optim;
+        let stand_in = self.actor_target.clone();
+        replace_with(&mut self.actor, stand_in, |actor| {
+            optim.step(c.actor_lr, actor, grads)
+        });
 
-        self.actor_target = soft_update(&self.actor, &self.actor_target, c.tau);
-        self.critics_target = soft_update(&self.critics, &self.critics_target, c.tau);
+        let (actor, critics) = (&self.actor, &self.critics);
+        replace_with(&mut self.actor_target, actor.valid(), |target| {
+            soft_update(actor, target, c.tau)
+        });
+        replace_with(&mut self.critics_target, critics.valid(), |target| {
+            soft_update(critics, target, c.tau)
+        });
         actor_loss
     }
 
@@ -238,6 +257,14 @@ impl<N: Networks> Td3<N> {
     }
 }
 
+/// Runs `step` on a worker of rayon's global pool, which the CPU backend's
+/// parallel loops run on. Called from any other thread, each of those
+/// loops (hundreds in an update) is a hand-over to the pool and a wait for
+/// its result; on a worker, the step's own thread takes part in them.
+fn on_worker<R: Send>(step: impl FnOnce() -> R + Send) -> R {
+    rayon::scope(|_| step())
+}
+
 /// Target policy smoothing: a' = clip(π'(s') + clip(ε, −c, c), −1, 1).
 pub fn smoothed_target_action(action: Tensor<2>, noise: Tensor<2>, noise_clip: f64) -> Tensor<2> {
     (action + noise.clamp(-noise_clip, noise_clip)).clamp(-1.0, 1.0)
@@ -259,25 +286,38 @@ fn scalar<const D: usize>(t: &Tensor<D>) -> f64 {
     f64::from(t.clone().into_scalar::<f32>())
 }
 
-/// θ' ← τ θ + (1 − τ) θ'. The result starts as an inference copy of the
-/// online module, so BatchNorm running statistics follow the online ones.
-pub fn soft_update<M: Module>(online: &M, target: &M, tau: f64) -> M {
-    let mut old = Flatten(Vec::new());
-    target.visit(&mut old);
+/// Puts `f(module)` in `slot`, the module moved out for the call and
+/// `stand_in` (handles to another module's tensors) holding its place: an
+/// update that consumes the module is then the only owner of its tensors
+/// and writes them in place instead of copying them.
+fn replace_with<M>(slot: &mut M, stand_in: M, f: impl FnOnce(M) -> M) {
+    let module = std::mem::replace(slot, stand_in);
+    *slot = f(module);
+}
+
+/// θ' ← τ θ + (1 − τ) θ', written over the target's tensors where nothing
+/// else holds them. The result starts as an inference copy of the online
+/// module, so BatchNorm running statistics follow the online ones.
+pub fn soft_update<M: Module>(online: &M, target: M, tau: f64) -> M {
+    let mut old = Drain(Vec::new());
+    drop(target.map(&mut old));
     online.valid().map(&mut Blend {
         old: old.0.into_iter(),
         tau,
     })
 }
 
-/// Every float parameter, flattened, in visiting order.
-struct Flatten(Vec<Tensor<1>>);
+/// Takes every float parameter out of a module, flattened, in visiting
+/// order, leaving one-element stand-ins in the module.
+struct Drain(Vec<Tensor<1>>);
 
-impl ModuleVisitor for Flatten {
-    fn visit_float<const D: usize>(&mut self, param: &Param<Tensor<D>>) {
-        let t = param.val();
+impl ModuleMapper for Drain {
+    fn map_float<const D: usize>(&mut self, param: Param<Tensor<D>>) -> Param<Tensor<D>> {
+        let (id, t, mapper) = param.consume();
+        let stand_in = Tensor::zeros([1; D], &t.device());
         let n = t.shape().num_elements();
         self.0.push(t.reshape([n]));
+        Param::from_mapped_value(id, stand_in, mapper)
     }
 }
 

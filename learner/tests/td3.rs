@@ -58,7 +58,8 @@ fn soft_update_blends_every_parameter() {
     let device = Device::flex();
     let online: Linear = LinearConfig::new(3, 2).init(&device);
     let target: Linear = LinearConfig::new(3, 2).init(&device);
-    let blended = soft_update(&online, &target, 0.25);
+    // The target is shared here (cloned): it must be left as it was.
+    let blended = soft_update(&online, target.clone(), 0.25);
     let w = |m: &Linear| values(m.weight.val());
     let b = |m: &Linear| values(m.bias.as_ref().unwrap().val());
     let expect = |on: Vec<f32>, old: Vec<f32>| -> Vec<f32> {
@@ -70,8 +71,12 @@ fn soft_update_blends_every_parameter() {
     close(&w(&blended), &expect(w(&online), w(&target)));
     close(&b(&blended), &expect(b(&online), b(&target)));
     // τ = 1 copies; τ = 0 keeps.
-    close(&w(&soft_update(&online, &target, 1.0)), &w(&online));
-    close(&w(&soft_update(&online, &target, 0.0)), &w(&target));
+    close(&w(&soft_update(&online, target.clone(), 1.0)), &w(&online));
+    close(&w(&soft_update(&online, target.clone(), 0.0)), &w(&target));
+    // Unshared, the target is written over in place: the same blend.
+    let in_place = soft_update(&online, target, 0.25);
+    close(&w(&in_place), &w(&blended));
+    close(&b(&in_place), &b(&blended));
 }
 
 fn cnn(height: u32, width: u32) -> PaperNetworks {

@@ -21,7 +21,7 @@ use tweezer_gym::{EnvConfig, Renderer};
 pub trait Networks: Clone + Send + Sync + 'static {
     /// What the networks read of a batch of observations besides the
     /// target vector.
-    type Input: Clone + Send;
+    type Input: Clone + Send + Sync;
     /// The policy network.
     type Actor: Module + ModuleDisplay;
     /// The action-value network.
