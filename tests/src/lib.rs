@@ -259,8 +259,18 @@ pub async fn connect(addr: &str, name: &str) -> tweezer_rpc::AuthChannel {
 /// given), waits for its first stdout line, `<bin> listening on ADDR`, and
 /// returns it with ADDR.
 pub fn start_service(bin: &str, args: &[&str], log: Option<&Path>) -> (Child, String) {
+    start_service_with_env(bin, args, &[], log)
+}
+
+/// [`start_service`] with `vars` added to the process's environment.
+pub fn start_service_with_env(
+    bin: &str,
+    args: &[&str],
+    vars: &[(&str, &str)],
+    log: Option<&Path>,
+) -> (Child, String) {
     let mut command = Command::new(binary(bin));
-    command.args(args);
+    command.args(args).envs(vars.iter().copied());
     spawn_service(bin, command, log)
 }
 

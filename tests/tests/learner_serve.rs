@@ -14,7 +14,8 @@ use tweezer_proto::pb::snapshot_request::Selector;
 use tweezer_proto::{download_snapshot, pb, step_to_wire};
 use tweezer_rpc::AuthChannel;
 use tweezer_system_tests::{
-    Running, connect, credentials, learner_status, start_service, stderr_of_failure,
+    Running, connect, credentials, learner_status, start_service, start_service_with_env,
+    stderr_of_failure,
 };
 
 /// No free spheres, 20 x 16 images, the carry and time rewards only (so
@@ -604,6 +605,42 @@ async fn updates_that_diverge_are_rolled_back_then_learning_pauses_and_the_learn
     assert_eq!(checkpoints(&run).len(), 1, "{log}");
     let metrics = std::fs::read_to_string(run.join("metrics.jsonl")).unwrap();
     assert!(metrics.contains("\"divergence\""), "{metrics}");
+}
+
+/// The learner keeps freed memory 30 s for reuse: it re-executes itself
+/// once, in the same process, with mimalloc's option set; an option the
+/// user set is left as it is.
+#[test]
+fn the_learner_sets_the_allocator_s_purge_delay_unless_it_is_set() {
+    for (vars, want) in [
+        (&[][..], "30000"),
+        (&[("MIMALLOC_PURGE_DELAY", "5000")][..], "5000"),
+    ] {
+        let (_dir, run, config) = run_dir();
+        let security = credentials().file("server");
+        let args = [
+            "serve",
+            "--security",
+            &security,
+            "--config",
+            config.to_str().unwrap(),
+            "--run-dir",
+            run.to_str().unwrap(),
+        ];
+        let (child, _) = start_service_with_env("learner", &args, vars, None);
+        let learner = Running::new(child);
+        let environ = std::fs::read(format!("/proc/{}/environ", learner.child().id())).unwrap();
+        let option = format!("MIMALLOC_PURGE_DELAY={want}");
+        assert!(
+            environ
+                .split(|&b| b == 0)
+                .any(|var| var == option.as_bytes()),
+            "{option} not in {}",
+            String::from_utf8_lossy(&environ)
+        );
+        let (exit, _) = learner.stop();
+        assert!(exit.success());
+    }
 }
 
 #[test]
