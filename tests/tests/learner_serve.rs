@@ -14,8 +14,7 @@ use tweezer_proto::pb::snapshot_request::Selector;
 use tweezer_proto::{download_snapshot, pb, step_to_wire};
 use tweezer_rpc::AuthChannel;
 use tweezer_system_tests::{
-    Running, connect, credentials, learner_status, start_service, start_service_with_env,
-    stderr_of_failure,
+    Running, connect, credentials, learner_status, start_service_with_env, stderr_of_failure,
 };
 
 /// No free spheres, 20 x 16 images, the carry and time rewards only (so
@@ -72,6 +71,11 @@ struct Learner {
 impl Learner {
     /// `learner serve` with `args`, logging into `dir`.
     fn start(dir: &Path, args: &[&str]) -> Self {
+        Self::start_with_env(dir, args, &[])
+    }
+
+    /// [`Learner::start`] with `vars` added to its environment.
+    fn start_with_env(dir: &Path, args: &[&str], vars: &[(&str, &str)]) -> Self {
         let log = (0..)
             .map(|n| dir.join(format!("learner-{n}.log")))
             .find(|path| !path.exists())
@@ -79,7 +83,7 @@ impl Learner {
         let security = credentials().file("server");
         let mut all = vec!["serve", "--security", &security];
         all.extend_from_slice(args);
-        let (child, addr) = start_service("learner", &all, Some(&log));
+        let (child, addr) = start_service_with_env("learner", &all, vars, Some(&log));
         Self {
             process: Running::new(child),
             addr,
@@ -616,20 +620,16 @@ fn the_learner_sets_the_allocator_s_purge_delay_unless_it_is_set() {
         (&[][..], "30000"),
         (&[("MIMALLOC_PURGE_DELAY", "5000")][..], "5000"),
     ] {
-        let (_dir, run, config) = run_dir();
-        let security = credentials().file("server");
+        let (dir, run, config) = run_dir();
         let args = [
-            "serve",
-            "--security",
-            &security,
             "--config",
             config.to_str().unwrap(),
             "--run-dir",
             run.to_str().unwrap(),
         ];
-        let (child, _) = start_service_with_env("learner", &args, vars, None);
-        let learner = Running::new(child);
-        let environ = std::fs::read(format!("/proc/{}/environ", learner.child().id())).unwrap();
+        let learner = Learner::start_with_env(dir.path(), &args, vars);
+        let pid = learner.process.child().id();
+        let environ = std::fs::read(format!("/proc/{pid}/environ")).unwrap();
         let option = format!("MIMALLOC_PURGE_DELAY={want}");
         assert!(
             environ
@@ -638,8 +638,8 @@ fn the_learner_sets_the_allocator_s_purge_delay_unless_it_is_set() {
             "{option} not in {}",
             String::from_utf8_lossy(&environ)
         );
-        let (exit, _) = learner.stop();
-        assert!(exit.success());
+        let (exit, log) = learner.stop();
+        assert!(exit.success(), "{log}");
     }
 }
 
