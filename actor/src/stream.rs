@@ -22,7 +22,7 @@ use std::time::{Duration, Instant};
 use tokio::runtime::Runtime;
 use tweezer_gym::{Action, Outcome, Policy, SplitMix64, UniformRandom, VecEnv};
 use tweezer_nets::NetworkPolicy;
-use tweezer_process::stop_signal;
+use tweezer_process::StopSignals;
 use tweezer_proto::pb::learner_client::LearnerClient;
 use tweezer_proto::pb::snapshot_request::Selector;
 use tweezer_proto::{download_snapshot, pb, step_to_wire};
@@ -167,9 +167,13 @@ pub fn run(
         .worker_threads(1)
         .enable_all()
         .build()?;
+    let mut signals = {
+        let _inside = runtime.enter();
+        StopSignals::install().context("cannot catch stop signals")?
+    };
     let signalled = stop.clone();
     runtime.spawn(async move {
-        let signal = stop_signal().await;
+        let signal = signals.recv().await;
         tracing::info!(
             signal,
             "stopping once the batches in flight are acknowledged (at most 3 s)"

@@ -20,7 +20,7 @@ use tweezer_learner::config::LearnerFile;
 use tweezer_learner::durable_write::write_bytes_atomic;
 use tweezer_learner::run_dir::RunDir;
 use tweezer_learner::run_log::RunLog;
-use tweezer_process::stop_signal;
+use tweezer_process::StopSignals;
 use tweezer_proto::pb::LearnerStatus;
 use tweezer_proto::pb::learner_client::LearnerClient;
 use tweezer_rpc::{AuthChannel, ClientSecurity, LoopbackCredentials, Security, learner_status};
@@ -121,6 +121,7 @@ pub fn run(options: TrainOptions) -> anyhow::Result<TrainOutcome> {
         .enable_all()
         .build()?;
     runtime.block_on(async {
+        let mut signals = StopSignals::install().context("cannot catch stop signals")?;
         let mut summaries = Vec::new();
         for (k, (dir, file)) in runs.iter().enumerate() {
             if runs.len() > 1 {
@@ -131,7 +132,8 @@ pub fn run(options: TrainOptions) -> anyhow::Result<TrainOutcome> {
                 bail!("--minutes must be finite and >= 0, got {minutes}");
             }
             let limit = (minutes > 0.0).then(|| Duration::from_secs_f64(minutes * 60.0));
-            let summary = supervise(file, dir, options.resume, limit, &binaries).await?;
+            let summary =
+                supervise(file, dir, options.resume, limit, &binaries, &mut signals).await?;
             let interrupted = summary.interrupted;
             summaries.push(summary);
             if interrupted {
@@ -139,7 +141,8 @@ pub fn run(options: TrainOptions) -> anyhow::Result<TrainOutcome> {
             }
         }
         let dirs: Vec<PathBuf> = summaries.iter().map(|s| s.run_dir.clone()).collect();
-        let report = final_report(&runs[0].1, dirs, RunDir::new(out).report()).await?;
+        let report =
+            final_report(&runs[0].1, dirs, RunDir::new(out).report(), &mut signals).await?;
         Ok(TrainOutcome {
             runs: summaries,
             report,
@@ -152,6 +155,7 @@ async fn final_report(
     file: &TrainFile,
     runs: Vec<PathBuf>,
     out: PathBuf,
+    signals: &mut StopSignals,
 ) -> anyhow::Result<Option<Report>> {
     eprintln!("evaluating the best snapshots and drawing the report (Ctrl-C skips this)");
     let options = ReportOptions {
@@ -167,7 +171,7 @@ async fn final_report(
         .join(" ");
     let reporting = tokio::task::spawn_blocking(move || report::write(&runs, &out, &options));
     tokio::select! {
-        signal = stop_signal() => {
+        signal = signals.recv() => {
             eprintln!("{signal}: report skipped; run `experiment report {dirs}` later");
             Ok(None)
         }
@@ -259,6 +263,7 @@ async fn supervise(
     resume: bool,
     limit: Option<Duration>,
     binaries: &Binaries,
+    signals: &mut StopSignals,
 ) -> anyhow::Result<TrainSummary> {
     let run = RunDir::new(out);
     let logs = run.logs();
@@ -308,11 +313,9 @@ async fn supervise(
     let started = Instant::now();
     let mut last = first.clone();
     let mut ticker = tokio::time::interval(POLL);
-    let stop = stop_signal();
-    tokio::pin!(stop);
     let ending = loop {
         tokio::select! {
-            signal = &mut stop => break Ending::Signal(signal),
+            signal = signals.recv() => break Ending::Signal(signal),
             _ = ticker.tick() => {}
         }
         if limit.is_some_and(|l| started.elapsed() >= l) {

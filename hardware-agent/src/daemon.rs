@@ -20,7 +20,7 @@ use tweezer_hardware_agent::config::AgentConfig;
 use tweezer_hardware_agent::control::HaltKind;
 use tweezer_hardware_agent::instrument::Instrument;
 use tweezer_hardware_agent::policy_source::{LoadedPolicy, PolicyChoice};
-use tweezer_process::{init_logging, stop_signal};
+use tweezer_process::{StopSignals, init_logging};
 use tweezer_proto::pb::hardware_agent_server::HardwareAgentServer;
 use tweezer_rpc::{Security, ServerSecurity};
 
@@ -80,6 +80,7 @@ pub fn serve(
                 })?),
                 None => None,
             };
+        let mut signals = StopSignals::install().context("cannot catch stop signals")?;
         tracing::info!(%addr, twin, "hardware agent serving");
         println!("hardware-agent listening on {addr}");
         let (stopping, mut stopped) = tokio::sync::watch::channel(false);
@@ -98,7 +99,7 @@ pub fn serve(
         }
         let service = AgentService::new(shared.clone(), jobs.clone());
         let shutdown = async move {
-            let signal = stop_signal().await;
+            let signal = signals.recv().await;
             tracing::info!(
                 signal,
                 "stopping: ending the episode and stopping the stages"

@@ -21,7 +21,7 @@ use anyhow::{Context, bail};
 use std::sync::Arc;
 use tokio::net::TcpListener;
 use tweezer_gym::StepBounds;
-use tweezer_process::stop_signal;
+use tweezer_process::StopSignals;
 use tweezer_rpc::{Security, ServerSecurity};
 
 /// How long clients may take to hang up once the learner stops.
@@ -108,6 +108,7 @@ pub fn serve(file: LearnerFile, start: Start, security: &Security) -> anyhow::Re
                 trainer_shared.stop();
                 let _ = trained_tx.send(result);
             })?;
+        let mut signals = StopSignals::install().context("cannot catch stop signals")?;
         tracing::info!(%addr, run_dir = %run_dir.path().display(), "learner serving");
         println!("learner listening on {addr}");
         if let Some(listener) = metrics {
@@ -124,7 +125,7 @@ pub fn serve(file: LearnerFile, start: Start, security: &Security) -> anyhow::Re
         let stopped = shared.clone();
         let shutdown = async move {
             tokio::select! {
-                signal = stop_signal() => tracing::info!(signal, "stopping: finishing the update in flight and writing a checkpoint"),
+                signal = signals.recv() => tracing::info!(signal, "stopping: finishing the update in flight and writing a checkpoint"),
                 () = stopped.stopped() => {}
             }
             stopped.stop();

@@ -18,26 +18,54 @@ pub fn init_logging(json: bool) {
     }
 }
 
-/// Waits for SIGINT or SIGTERM (Ctrl-C elsewhere); names the one that came.
-pub async fn stop_signal() -> &'static str {
+/// SIGINT and SIGTERM (Ctrl-C elsewhere), caught from the moment they are
+/// installed: a signal that comes before anything waits for it is kept for
+/// [`StopSignals::recv`], not left to the default action that ends the
+/// process at once (no checkpoint, stages not stopped).
+pub struct StopSignals {
     #[cfg(unix)]
-    {
-        use tokio::signal::unix::{SignalKind, signal};
-        match signal(SignalKind::terminate()) {
-            Ok(mut term) => tokio::select! {
-                _ = tokio::signal::ctrl_c() => "SIGINT",
-                _ = term.recv() => "SIGTERM",
-            },
-            Err(_) => {
-                let _ = tokio::signal::ctrl_c().await;
-                "SIGINT"
-            }
+    interrupt: tokio::signal::unix::Signal,
+    #[cfg(unix)]
+    terminate: tokio::signal::unix::Signal,
+    #[cfg(not(unix))]
+    ctrl_c: tokio::signal::windows::CtrlC,
+}
+
+impl StopSignals {
+    /// Catches the stop signals from now on. Call it inside a Tokio
+    /// runtime with I/O enabled, before the process tells anyone it is up.
+    pub fn install() -> std::io::Result<Self> {
+        #[cfg(unix)]
+        {
+            use tokio::signal::unix::{SignalKind, signal};
+            Ok(Self {
+                interrupt: signal(SignalKind::interrupt())?,
+                terminate: signal(SignalKind::terminate())?,
+            })
+        }
+        #[cfg(not(unix))]
+        {
+            Ok(Self {
+                ctrl_c: tokio::signal::windows::ctrl_c()?,
+            })
         }
     }
-    #[cfg(not(unix))]
-    {
-        let _ = tokio::signal::ctrl_c().await;
-        "Ctrl-C"
+
+    /// Waits for the next stop signal, or one that came since the last
+    /// call; names it. Cancel safe.
+    pub async fn recv(&mut self) -> &'static str {
+        #[cfg(unix)]
+        {
+            tokio::select! {
+                _ = self.interrupt.recv() => "SIGINT",
+                _ = self.terminate.recv() => "SIGTERM",
+            }
+        }
+        #[cfg(not(unix))]
+        {
+            self.ctrl_c.recv().await;
+            "Ctrl-C"
+        }
     }
 }
 
@@ -58,7 +86,28 @@ pub fn parse_pair(text: &str) -> Result<[f64; 2], String> {
 
 #[cfg(test)]
 mod tests {
-    use super::parse_pair;
+    use super::{StopSignals, parse_pair};
+
+    /// A signal sent before anything waits is kept, and named when asked.
+    #[cfg(unix)]
+    #[test]
+    fn a_stop_signal_before_the_wait_is_kept() {
+        let runtime = tokio::runtime::Builder::new_current_thread()
+            .enable_all()
+            .build()
+            .unwrap();
+        let mut signals = runtime.block_on(async { StopSignals::install() }).unwrap();
+        let sent = std::process::Command::new("kill")
+            .args(["-TERM", &std::process::id().to_string()])
+            .status()
+            .unwrap();
+        assert!(sent.success());
+        std::thread::sleep(std::time::Duration::from_millis(100));
+        let name = runtime.block_on(async {
+            tokio::time::timeout(std::time::Duration::from_secs(10), signals.recv()).await
+        });
+        assert_eq!(name, Ok("SIGTERM"));
+    }
 
     #[test]
     fn pairs_parse_and_bad_ones_are_named() {

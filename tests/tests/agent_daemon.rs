@@ -11,7 +11,7 @@ use tonic_health::pb::health_client::HealthClient;
 use tweezer_proto::pb;
 use tweezer_proto::pb::hardware_agent_client::HardwareAgentClient;
 use tweezer_rpc::AuthChannel;
-use tweezer_system_tests::{connect, signal, start_agent};
+use tweezer_system_tests::{Running, connect, signal, start_agent};
 
 /// The daemon, killed if the test fails before stopping it.
 struct Daemon(Child);
@@ -252,4 +252,17 @@ async fn the_daemon_runs_episodes_stops_them_and_refuses_what_it_must() {
     assert!(exit.success(), "{exit:?}");
     let records = std::fs::read_dir(dir.path()).unwrap().count();
     assert_eq!(records, 4, "two episodes: a record and a picture each");
+}
+
+/// A SIGTERM the moment the daemon says it listens (a supervisor that
+/// changes its mind) is caught, not left to end it at once with its stages
+/// unstopped.
+#[test]
+fn a_sigterm_as_soon_as_the_daemon_listens_ends_it_cleanly() {
+    let dir = tempfile::tempdir().unwrap();
+    for _ in 0..3 {
+        let (child, _) = start_agent(&["--records", dir.path().to_str().unwrap()], None);
+        let (exit, _) = Running::new(child).stop();
+        assert!(exit.success(), "{exit:?}");
+    }
 }

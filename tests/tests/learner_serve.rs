@@ -643,6 +643,24 @@ fn the_learner_sets_the_allocator_s_purge_delay_unless_it_is_set() {
     }
 }
 
+/// A SIGTERM the moment the learner says it listens is caught: it stops
+/// cleanly with a checkpoint instead of dying of the signal.
+#[test]
+fn a_sigterm_as_soon_as_the_learner_listens_stops_it_with_a_checkpoint() {
+    let (dir, run, config) = run_dir();
+    for _ in 0..3 {
+        let learner = if !run.exists() {
+            Learner::fresh(dir.path(), &config, &run)
+        } else {
+            Learner::start(dir.path(), &["--resume", run.to_str().unwrap()])
+        };
+        let (exit, log) = learner.stop();
+        assert!(exit.success(), "{log}");
+        assert!(log.contains("stopping: finishing the update"), "{log}");
+        assert!(!checkpoints(&run).is_empty(), "{log}");
+    }
+}
+
 #[test]
 fn a_bad_config_is_refused_naming_the_field() {
     let dir = tempfile::tempdir().unwrap();

@@ -9,7 +9,7 @@ use tweezer_hardware_agent::control::{Halt, HaltKind};
 use tweezer_hardware_agent::instrument::Instrument;
 use tweezer_hardware_agent::policy_source::{LoadedPolicy, PolicyChoice};
 use tweezer_hardware_agent::record::EpisodeHeader;
-use tweezer_process::{init_logging, stop_signal};
+use tweezer_process::{StopSignals, init_logging};
 use tweezer_rpc::Security;
 
 /// What `run` was asked for.
@@ -51,10 +51,14 @@ pub fn run(config: &AgentConfig, args: RunArgs, security: Option<&Security>) -> 
         .enable_all()
         .build()
         .context("cannot watch for signals")?;
+    let mut stop = {
+        let _inside = signals.enter();
+        StopSignals::install().context("cannot catch stop signals")?
+    };
     std::thread::spawn({
         let halt = halt.clone();
         move || {
-            let name = signals.block_on(stop_signal());
+            let name = signals.block_on(stop.recv());
             tracing::warn!("{name}: stopping the episode");
             // A signal is an operator's stop: a profiled stop as the loop
             // ends; an immediate one too if the loop is stuck.
