@@ -167,10 +167,7 @@ pub fn run(
         .worker_threads(1)
         .enable_all()
         .build()?;
-    let mut signals = {
-        let _inside = runtime.enter();
-        StopSignals::install().context("cannot catch stop signals")?
-    };
+    let mut signals = StopSignals::install(runtime.handle())?;
     let signalled = stop.clone();
     runtime.spawn(async move {
         let signal = signals.recv().await;

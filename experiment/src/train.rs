@@ -121,7 +121,7 @@ pub fn run(options: TrainOptions) -> anyhow::Result<TrainOutcome> {
         .enable_all()
         .build()?;
     runtime.block_on(async {
-        let mut signals = StopSignals::install().context("cannot catch stop signals")?;
+        let mut signals = StopSignals::install(&tokio::runtime::Handle::current())?;
         let mut summaries = Vec::new();
         for (k, (dir, file)) in runs.iter().enumerate() {
             if runs.len() > 1 {

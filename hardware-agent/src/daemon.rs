@@ -80,7 +80,7 @@ pub fn serve(
                 })?),
                 None => None,
             };
-        let mut signals = StopSignals::install().context("cannot catch stop signals")?;
+        let mut signals = StopSignals::install(&tokio::runtime::Handle::current())?;
         tracing::info!(%addr, twin, "hardware agent serving");
         println!("hardware-agent listening on {addr}");
         let (stopping, mut stopped) = tokio::sync::watch::channel(false);

@@ -108,7 +108,7 @@ pub fn serve(file: LearnerFile, start: Start, security: &Security) -> anyhow::Re
                 trainer_shared.stop();
                 let _ = trained_tx.send(result);
             })?;
-        let mut signals = StopSignals::install().context("cannot catch stop signals")?;
+        let mut signals = StopSignals::install(&tokio::runtime::Handle::current())?;
         tracing::info!(%addr, run_dir = %run_dir.path().display(), "learner serving");
         println!("learner listening on {addr}");
         if let Some(listener) = metrics {

@@ -32,23 +32,29 @@ pub struct StopSignals {
 }
 
 impl StopSignals {
-    /// Catches the stop signals from now on. Call it inside a Tokio
-    /// runtime with I/O enabled, before the process tells anyone it is up.
-    pub fn install() -> std::io::Result<Self> {
-        #[cfg(unix)]
-        {
-            use tokio::signal::unix::{SignalKind, signal};
-            Ok(Self {
-                interrupt: signal(SignalKind::interrupt())?,
-                terminate: signal(SignalKind::terminate())?,
-            })
-        }
-        #[cfg(not(unix))]
-        {
-            Ok(Self {
-                ctrl_c: tokio::signal::windows::ctrl_c()?,
-            })
-        }
+    /// Catches the stop signals from now on, delivered through `runtime`
+    /// (built with I/O enabled). Call it before the process tells anyone
+    /// it is up.
+    pub fn install(runtime: &tokio::runtime::Handle) -> std::io::Result<Self> {
+        let _inside = runtime.enter();
+        let caught = || -> std::io::Result<Self> {
+            #[cfg(unix)]
+            {
+                use tokio::signal::unix::{SignalKind, signal};
+                Ok(Self {
+                    interrupt: signal(SignalKind::interrupt())?,
+                    terminate: signal(SignalKind::terminate())?,
+                })
+            }
+            #[cfg(not(unix))]
+            {
+                Ok(Self {
+                    ctrl_c: tokio::signal::windows::ctrl_c()?,
+                })
+            }
+        };
+        caught()
+            .map_err(|e| std::io::Error::new(e.kind(), format!("cannot catch stop signals: {e}")))
     }
 
     /// Waits for the next stop signal, or one that came since the last
@@ -96,7 +102,7 @@ mod tests {
             .enable_all()
             .build()
             .unwrap();
-        let mut signals = runtime.block_on(async { StopSignals::install() }).unwrap();
+        let mut signals = StopSignals::install(runtime.handle()).unwrap();
         let sent = std::process::Command::new("kill")
             .args(["-TERM", &std::process::id().to_string()])
             .status()

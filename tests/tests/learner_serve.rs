@@ -94,15 +94,7 @@ impl Learner {
 
     /// A new run in `run` with the config file `config`.
     fn fresh(dir: &Path, config: &Path, run: &Path) -> Self {
-        let mut learner = Self::start(
-            dir,
-            &[
-                "--config",
-                config.to_str().unwrap(),
-                "--run-dir",
-                run.to_str().unwrap(),
-            ],
-        );
+        let mut learner = Self::start(dir, &run_args(config, run));
         let file: toml::Table = toml::from_str(&std::fs::read_to_string(config).unwrap()).unwrap();
         learner.env = file["env"].clone().try_into().unwrap();
         learner
@@ -122,6 +114,17 @@ impl Learner {
         let (status, _) = self.process.stop();
         (status, std::fs::read_to_string(&self.log).unwrap())
     }
+}
+
+/// `learner serve` arguments for the config file `config` and the run
+/// directory `run`.
+fn run_args<'a>(config: &'a Path, run: &'a Path) -> [&'a str; 4] {
+    [
+        "--config",
+        config.to_str().unwrap(),
+        "--run-dir",
+        run.to_str().unwrap(),
+    ]
 }
 
 /// A temporary directory with the tiny config file and a run directory.
@@ -421,13 +424,7 @@ async fn the_set_network_learns_to_point_at_the_target_over_grpc() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn auto_resume_starts_a_run_then_continues_it() {
     let (dir, run, config) = run_dir();
-    let args = [
-        "--config",
-        config.to_str().unwrap(),
-        "--run-dir",
-        run.to_str().unwrap(),
-        "--auto-resume",
-    ];
+    let args = [&run_args(&config, &run)[..], &["--auto-resume"]].concat();
     let learner = Learner::start(dir.path(), &args);
     let first = learner.status().await;
     let (exit, log) = learner.stop();
@@ -621,13 +618,7 @@ fn the_learner_sets_the_allocator_s_purge_delay_unless_it_is_set() {
         (&[("MIMALLOC_PURGE_DELAY", "5000")][..], "5000"),
     ] {
         let (dir, run, config) = run_dir();
-        let args = [
-            "--config",
-            config.to_str().unwrap(),
-            "--run-dir",
-            run.to_str().unwrap(),
-        ];
-        let learner = Learner::start_with_env(dir.path(), &args, vars);
+        let learner = Learner::start_with_env(dir.path(), &run_args(&config, &run), vars);
         let pid = learner.process.child().id();
         let environ = std::fs::read(format!("/proc/{pid}/environ")).unwrap();
         let option = format!("MIMALLOC_PURGE_DELAY={want}");

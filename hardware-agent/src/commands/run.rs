@@ -51,10 +51,7 @@ pub fn run(config: &AgentConfig, args: RunArgs, security: Option<&Security>) -> 
         .enable_all()
         .build()
         .context("cannot watch for signals")?;
-    let mut stop = {
-        let _inside = signals.enter();
-        StopSignals::install().context("cannot catch stop signals")?
-    };
+    let mut stop = StopSignals::install(signals.handle())?;
     std::thread::spawn({
         let halt = halt.clone();
         move || {
