@@ -1,6 +1,6 @@
 //! `learner bench`: how fast the learner's parts run on this machine.
 
-use crate::config::{DeviceChoice, NetworkConfig};
+use crate::config::LearnerConfig;
 use crate::learner_state::LearnerState;
 use crate::loopback::batches;
 use crate::minibatch::minibatch_tensors;
@@ -72,6 +72,7 @@ struct NetworkTimes {
 
 /// Times TD3 updates and inference of the networks on batches of `replay`.
 struct TimeNetworks<'a> {
+    td3: Td3Config,
     replay: &'a Replay,
     batch_size: usize,
     updates: usize,
@@ -83,13 +84,14 @@ impl WithNetworks for TimeNetworks<'_> {
 
     fn with<N: Networks>(self, networks: N) -> Self::Output {
         let TimeNetworks {
+            td3,
             replay,
             batch_size,
             updates,
             device,
         } = self;
         let training = device.clone().autodiff();
-        let mut td3 = Td3::new(Td3Config::default(), networks.clone(), &training)?;
+        let mut td3 = Td3::new(td3, networks.clone(), &training)?;
         let mut rng = SplitMix64::new(7);
         let mut sample = |n: usize, on: &Device| {
             let sampled = replay.sample(n, &mut rng).expect("the replay is full");
@@ -219,22 +221,23 @@ fn time_ms(reps: usize, mut f: impl FnMut()) -> f64 {
 }
 
 /// Runs every benchmark: `updates` (rounded up to even) timed TD3 updates
-/// of the networks `network` configures, after two warm-up updates, on a
-/// replay of `capacity` transitions.
+/// of the networks `learner.network` configures, with `learner.td3`, on
+/// `learner.device`, after two warm-up updates, on a replay of `capacity`
+/// transitions.
 pub fn run(
     env: &EnvConfig,
-    network: &NetworkConfig,
+    learner: &LearnerConfig,
     batch_size: usize,
     capacity: usize,
     updates: usize,
-    device: DeviceChoice,
 ) -> anyhow::Result<LearnerBench> {
-    let (choice, device) = (device, device.device()?);
-    let device = &device;
+    let (network, choice) = (&learner.network, learner.device);
+    let device = &choice.device()?;
     let replay = filled_replay(env, capacity)?;
     let networks = network.architecture(env).networks_for(
         env,
         TimeNetworks {
+            td3: learner.td3.clone(),
             replay: &replay,
             batch_size,
             updates,

@@ -58,7 +58,8 @@ enum Command {
     /// Print the effective configuration (the file over the defaults of
     /// `docs/spec.md`) as TOML.
     Config,
-    /// Measure TD3 updates, inference and replay memory on `learner.device`.
+    /// Measure TD3 updates (with `learner.td3`), inference and replay memory
+    /// on `learner.device`.
     Bench {
         /// TD3 updates timed (rounded up to an even number).
         #[arg(long, default_value_t = 4)]
@@ -163,11 +164,10 @@ fn main() -> anyhow::Result<()> {
             let config = LearnerFile::load(cli.config.as_deref())?;
             let report = tweezer_learner::bench::run(
                 &config.env,
-                &config.learner.network,
+                &config.learner,
                 batch_size.unwrap_or(config.learner.batch_size),
                 replay_capacity,
                 updates,
-                config.learner.device,
             )?;
             if json {
                 println!("{}", serde_json::to_string(&report)?);

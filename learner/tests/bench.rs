@@ -1,27 +1,52 @@
 //! `learner bench` on a small configuration: every figure is measured.
 
-use tweezer_learner::bench::LearnerBench;
-use tweezer_learner::config::{DeviceChoice, NetworkConfig, SetNetworkConfig};
+use tweezer_gym::{EnvConfig, ImageConfig};
+use tweezer_learner::bench::{LearnerBench, run};
+use tweezer_learner::config::{LearnerConfig, NetworkConfig, SetNetworkConfig};
+use tweezer_learner::td3::Td3Config;
 
-#[test]
-fn the_bench_measures_every_figure_of_a_small_configuration() {
-    let env = tweezer_gym::EnvConfig {
-        image: tweezer_gym::ImageConfig {
+fn small() -> EnvConfig {
+    EnvConfig {
+        image: ImageConfig {
             width: 80,
             height: 64,
         },
-        ..tweezer_gym::EnvConfig::default()
-    };
+        ..EnvConfig::default()
+    }
+}
+
+#[test]
+fn the_bench_measures_every_figure_of_a_small_configuration() {
+    let env = small();
     let paper = NetworkConfig::Paper;
     let set = NetworkConfig::Set(SetNetworkConfig::default());
     for network in [paper, set] {
-        let report =
-            tweezer_learner::bench::run(&env, &network, 32, 2_000, 2, DeviceChoice::Flex).unwrap();
+        let learner = LearnerConfig {
+            network: network.clone(),
+            ..LearnerConfig::default()
+        };
+        let report = run(&env, &learner, 32, 2_000, 2).unwrap();
         check(&report);
         let name = network.architecture(&env).name();
         assert!(report.architecture.starts_with(name), "{report:?}");
         assert_eq!(report.device, "flex", "{report:?}");
     }
+}
+
+#[test]
+fn the_bench_trains_with_the_configured_td3() {
+    let learner = LearnerConfig {
+        td3: Td3Config {
+            policy_delay: 0,
+            ..Td3Config::default()
+        },
+        ..LearnerConfig::default()
+    };
+    let error = run(&small(), &learner, 32, 100, 2).unwrap_err();
+    assert!(
+        format!("{error:#}").contains("td3.policy_delay"),
+        "{error:#}"
+    );
 }
 
 fn check(report: &LearnerBench) {
