@@ -221,17 +221,16 @@ fn time_ms(reps: usize, mut f: impl FnMut()) -> f64 {
 }
 
 /// Runs every benchmark: `updates` (rounded up to even) timed TD3 updates
-/// of the networks `learner.network` configures, with `learner.td3`, on
-/// `learner.device`, after two warm-up updates, on a replay of `capacity`
-/// transitions.
+/// of the networks `learner.network` configures, with `learner.td3` at
+/// `learner.batch_size`, on `learner.device`, after two warm-up updates, on
+/// a replay of `capacity` transitions.
 pub fn run(
     env: &EnvConfig,
     learner: &LearnerConfig,
-    batch_size: usize,
     capacity: usize,
     updates: usize,
 ) -> anyhow::Result<LearnerBench> {
-    let (network, choice) = (&learner.network, learner.device);
+    let (network, choice, batch_size) = (&learner.network, learner.device, learner.batch_size);
     let device = &choice.device()?;
     let replay = filled_replay(env, capacity)?;
     let networks = network.architecture(env).networks_for(

@@ -161,11 +161,13 @@ fn main() -> anyhow::Result<()> {
             if replay_capacity == 0 {
                 bail!("--replay-capacity must be at least 1");
             }
-            let config = LearnerFile::load(cli.config.as_deref())?;
+            let mut config = LearnerFile::load(cli.config.as_deref())?;
+            if let Some(batch_size) = batch_size {
+                config.learner.batch_size = batch_size;
+            }
             let report = tweezer_learner::bench::run(
                 &config.env,
                 &config.learner,
-                batch_size.unwrap_or(config.learner.batch_size),
                 replay_capacity,
                 updates,
             )?;

@@ -23,9 +23,10 @@ fn the_bench_measures_every_figure_of_a_small_configuration() {
     for network in [paper, set] {
         let learner = LearnerConfig {
             network: network.clone(),
+            batch_size: 32,
             ..LearnerConfig::default()
         };
-        let report = run(&env, &learner, 32, 2_000, 2).unwrap();
+        let report = run(&env, &learner, 2_000, 2).unwrap();
         check(&report);
         let name = network.architecture(&env).name();
         assert!(report.architecture.starts_with(name), "{report:?}");
@@ -42,7 +43,7 @@ fn the_bench_trains_with_the_configured_td3() {
         },
         ..LearnerConfig::default()
     };
-    let error = run(&small(), &learner, 32, 100, 2).unwrap_err();
+    let error = run(&small(), &learner, 100, 2).unwrap_err();
     assert!(
         format!("{error:#}").contains("td3.policy_delay"),
         "{error:#}"
@@ -51,6 +52,7 @@ fn the_bench_trains_with_the_configured_td3() {
 
 fn check(report: &LearnerBench) {
     assert_eq!(report.updates_timed, 2);
+    assert_eq!(report.batch_size, 32);
     for v in [
         report.update_ms_mean,
         report.critic_step_ms,
