@@ -3,12 +3,13 @@
 # `learner bench` and benchmarks/pytorch/td3_update.py alternate, at 40 x 32
 # and 320 x 256, batch 32; prints the medians and their ratio.
 #
-#   benchmarks/learner-vs-pytorch.sh [--reps N] [--updates N] [--json]
+#   benchmarks/learner-vs-pytorch.sh [--reps N] [--updates N] [--device D] [--json]
 #
+# --device wgpu or cuda runs ours on that learner.device and PyTorch on CUDA.
 # PyTorch comes from the pinned benchmarks/pytorch/requirements.txt, into a
 # virtual environment made on first use ($BENCH_VENV, default
 # ~/.cache/tweezer-rl/bench-venv). The learner is $LEARNER, default the
-# release build, built if missing.
+# release build (with the device's feature), built if missing.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
@@ -20,8 +21,13 @@ fi
 
 learner="${LEARNER:-}"
 if [[ -z "$learner" ]]; then
+    features=() prev=
+    for arg in "$@"; do
+        [[ $prev == --device && $arg != cpu ]] && features=(--features "$arg")
+        prev=$arg
+    done
     target="${CARGO_TARGET_DIR:-target}"
-    cargo build --release --locked -p tweezer-learner >&2
+    cargo build --release --locked -p tweezer-learner "${features[@]}" >&2
     learner="$target/release/learner"
 fi
 

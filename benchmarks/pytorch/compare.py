@@ -1,5 +1,7 @@
 """Runs `learner bench` and td3_update.py in alternation and prints the
-median update times and their ratio (ours / PyTorch's) per resolution."""
+median update times and their ratio (ours / PyTorch's) per resolution.
+`--device wgpu` or `cuda` runs ours on that `learner.device` and PyTorch on
+CUDA."""
 
 import argparse
 import json
@@ -13,10 +15,12 @@ HERE = os.path.dirname(os.path.abspath(__file__))
 RESOLUTIONS = [(40, 32), (320, 256)]
 
 
-def learner_bench(learner, width, height, updates, batch_size, config_dir):
+def learner_bench(learner, device, width, height, updates, batch_size, config_dir):
     config = os.path.join(config_dir, f"{width}x{height}.toml")
     with open(config, "w") as f:
         f.write(f"[env.image]\nwidth = {width}\nheight = {height}\n")
+        if device != "cpu":
+            f.write(f"[learner]\ndevice = \"{device}\"\n")
     out = subprocess.run(
         [learner, "--config", config, "bench", "--json", "--updates", str(updates),
          "--batch-size", str(batch_size), "--replay-capacity", "20000"],
@@ -24,11 +28,11 @@ def learner_bench(learner, width, height, updates, batch_size, config_dir):
     return json.loads(out)
 
 
-def pytorch_bench(width, height, updates, batch_size, threads):
+def pytorch_bench(device, width, height, updates, batch_size, threads):
     out = subprocess.run(
         [sys.executable, os.path.join(HERE, "td3_update.py"), "--width", str(width),
          "--height", str(height), "--updates", str(updates), "--batch-size", str(batch_size),
-         "--threads", str(threads)],
+         "--threads", str(threads), "--device", "cpu" if device == "cpu" else "cuda"],
         check=True, capture_output=True, text=True).stdout
     return json.loads(out)
 
@@ -42,6 +46,8 @@ def main():
     parser.add_argument("--batch-size", type=int, default=32)
     parser.add_argument("--threads", type=int, default=os.cpu_count(),
                         help="PyTorch's threads (the learner uses every core)")
+    parser.add_argument("--device", choices=["cpu", "wgpu", "cuda"], default="cpu",
+                        help="ours on flex, wgpu or cuda; PyTorch on the CPU or CUDA")
     parser.add_argument("--json", action="store_true")
     args = parser.parse_args()
 
@@ -51,13 +57,14 @@ def main():
             updates = args.updates or (40 if width * height <= 64 * 64 else 6)
             ours, theirs, device, peer = [], [], None, None
             for _ in range(args.reps):
-                bench = learner_bench(args.learner, width, height, updates, args.batch_size,
-                                      config_dir)
+                bench = learner_bench(args.learner, args.device, width, height, updates,
+                                      args.batch_size, config_dir)
                 ours.append(bench["update_ms_mean"])
                 device = bench.get("device", "flex")
-                torch = pytorch_bench(width, height, updates, args.batch_size, args.threads)
+                torch = pytorch_bench(args.device, width, height, updates, args.batch_size,
+                                      args.threads)
                 theirs.append(torch["update_ms_mean"])
-                peer = torch["peer"]
+                peer = f"{torch['peer']} on {torch['device']}"
             ours_ms, theirs_ms = statistics.median(ours), statistics.median(theirs)
             results.append({
                 "resolution": [width, height],

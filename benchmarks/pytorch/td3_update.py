@@ -1,7 +1,9 @@
 """The paper's networks and our TD3 update in PyTorch, timed as `learner
-bench` times ours: batch 32 on the CPU, sampling counted, two warm-up
-updates, then the mean over an even number of updates (every second one
-with the actor step and the soft target updates).
+bench` times ours: batch 32, sampling counted, two warm-up updates, then the
+mean over an even number of updates (every second one with the actor step
+and the soft target updates). On the CPU by default; `--device cuda` keeps
+the sampled pool on the host, as our replay is, and moves each batch to the
+GPU, synchronising before every clock reading.
 
 It mirrors `learner/src/td3.rs` step for step, the detached Q1 encoder in
 the actor's loss included, so both sides do the same arithmetic. Images are
@@ -86,9 +88,10 @@ def frozen(module):
 class Td3:
     gamma, tau, policy_noise, noise_clip, policy_delay = 0.99, 0.005, 0.2, 0.5, 2
 
-    def __init__(self, height, width):
-        self.actor, self.q1, self.q2 = (Actor(height, width), Critic(height, width),
-                                        Critic(height, width))
+    def __init__(self, height, width, device):
+        self.actor, self.q1, self.q2 = (Actor(height, width).to(device),
+                                        Critic(height, width).to(device),
+                                        Critic(height, width).to(device))
         self.actor_target = frozen(self.actor)
         self.q1_target, self.q2_target = frozen(self.q1), frozen(self.q2)
         self.actor_optim = torch.optim.Adam(self.actor.parameters(), lr=1e-3, eps=1e-8)
@@ -153,8 +156,15 @@ def main():
     parser.add_argument("--batch-size", type=int, default=32)
     parser.add_argument("--updates", type=int, default=4)
     parser.add_argument("--threads", type=int, default=os.cpu_count())
+    parser.add_argument("--device", default="cpu", help="cpu, or cuda")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
+    device = torch.device(args.device)
+
+    def clock():
+        if device.type == "cuda":
+            torch.cuda.synchronize(device)
+        return time.perf_counter()
     torch.manual_seed(7)
     rng = np.random.default_rng(7)
 
@@ -168,9 +178,10 @@ def main():
     def sample():
         i = torch.randint(0, pool, (args.batch_size,))
         j = (i + 1) % pool
-        return images[i], vectors[i], actions[i], rewards[i], terminated[i], images[j], vectors[j]
+        return tuple(t.to(device) for t in (images[i], vectors[i], actions[i], rewards[i],
+                                             terminated[i], images[j], vectors[j]))
 
-    td3 = Td3(args.height, args.width)
+    td3 = Td3(args.height, args.width, device)
 
     def update(batch):
         td3.critic_step(*batch)
@@ -181,17 +192,17 @@ def main():
     update(sample())
     updates = max(2, args.updates + args.updates % 2)
     critic, actor = [], []
-    started = time.perf_counter()
+    started = clock()
     for _ in range(updates):
         batch = sample()
-        t = time.perf_counter()
+        t = clock()
         td3.critic_step(*batch)
-        critic.append(time.perf_counter() - t)
+        critic.append(clock() - t)
         if td3.actor_due():
-            t = time.perf_counter()
+            t = clock()
             td3.actor_step(batch[0], batch[1])
-            actor.append(time.perf_counter() - t)
-    update_s = (time.perf_counter() - started) / updates
+            actor.append(clock() - t)
+    update_s = (clock() - started) / updates
     print(json.dumps({
         "peer": f"PyTorch {torch.__version__}",
         "update_ms_mean": update_s * 1e3,
@@ -201,6 +212,7 @@ def main():
         "batch_size": args.batch_size,
         "updates_timed": updates,
         "threads": torch.get_num_threads(),
+        "device": (torch.cuda.get_device_name(device) if device.type == "cuda" else "cpu"),
     }))
 
 

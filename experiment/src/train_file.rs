@@ -178,6 +178,7 @@ impl TrainConfig {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use tweezer_learner::config::DeviceChoice;
 
     #[test]
     fn presets_are_valid_and_differ() {
@@ -217,6 +218,22 @@ mod tests {
             std::fs::write(&path, text).unwrap();
             let err = TrainFile::load(&path).unwrap_err().to_string();
             assert!(err.contains(field), "{text}: {err}");
+        }
+    }
+
+    /// This binary never opens the learner's device: a GPU device is for
+    /// the learner binary it starts to open or refuse, whatever features
+    /// this one was built with.
+    #[test]
+    fn a_gpu_device_is_left_to_the_learner_binary() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("train.toml");
+        for (text, device) in [
+            ("[learner]\ndevice = \"cuda\"\n", DeviceChoice::Cuda),
+            ("[learner]\ndevice = \"wgpu\"\n", DeviceChoice::Wgpu),
+        ] {
+            std::fs::write(&path, text).unwrap();
+            assert_eq!(TrainFile::load(&path).unwrap().learner.device, device);
         }
     }
 }

@@ -157,7 +157,11 @@ impl LearnerConfig {
         self.network.validate()?;
         self.td3.validate()?;
         self.limiter.validate()?;
-        self.device.device().map(|_| ())
+        // `device` is not opened here: a process that reads this config
+        // without training on it (`experiment`, the CLI) need not be built
+        // with the learner's GPU feature. `learner serve` and `bench` open
+        // it first and refuse one their build lacks.
+        Ok(())
     }
 }
 
@@ -321,7 +325,7 @@ impl DeviceChoice {
 #[cfg(not(all(feature = "cuda", feature = "wgpu")))]
 fn missing(feature: &str) -> ConfigError {
     ConfigError::Invalid {
-        field: "device".into(),
+        field: "learner.device".into(),
         reason: format!(
             "this learner was built without the `{feature}` feature; rebuild with `cargo build --release -p tweezer-learner --features {feature}`"
         ),

@@ -55,8 +55,9 @@ enum Command {
         #[arg(long, env = tweezer_rpc::SECURITY_ENV, value_name = "FILE")]
         security: Option<PathBuf>,
     },
-    /// Print the effective configuration (the file over the defaults of
-    /// `docs/spec.md`) as TOML.
+    /// Check the configuration, `learner.device` included (this build
+    /// must be able to open it), and print it in effect (the file over the
+    /// defaults of `docs/spec.md`) as TOML.
     Config,
     /// Measure TD3 updates (with `learner.td3`), inference and replay memory
     /// on `learner.device`.
@@ -151,7 +152,11 @@ fn main() -> anyhow::Result<()> {
             };
             serve(file, start, &security)?;
         }
-        Command::Config => print!("{}", LearnerFile::load(cli.config.as_deref())?.to_toml()),
+        Command::Config => {
+            let file = LearnerFile::load(cli.config.as_deref())?;
+            file.learner.device.device()?;
+            print!("{}", file.to_toml());
+        }
         Command::Bench {
             updates,
             batch_size,

@@ -45,6 +45,9 @@ pub enum Start {
 pub fn serve(file: LearnerFile, start: Start, security: &Security) -> anyhow::Result<()> {
     let listener_security = ServerSecurity::load(security)?;
     let config = &file.learner;
+    // Before the run directory is touched: a device this build lacks is
+    // refused naming the cargo feature.
+    let device = config.device.device()?;
     let run_dir = &RunDir::new(&config.run_dir);
     std::fs::create_dir_all(run_dir.path())
         .with_context(|| format!("cannot create run directory {}", run_dir.path().display()))?;
@@ -74,7 +77,6 @@ pub fn serve(file: LearnerFile, start: Start, security: &Security) -> anyhow::Re
     if let Some(mut snapshots) = shared.snapshots() {
         snapshots.pin(needed);
     }
-    let device = config.device.device()?;
     let mut trainer = training(
         &file,
         shared.clone(),

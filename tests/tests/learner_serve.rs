@@ -663,3 +663,19 @@ fn a_bad_config_is_refused_naming_the_field() {
     ));
     assert!(err.contains("learner.td3.gamma"), "{err}");
 }
+
+/// A learner built without a GPU feature refuses that device naming the
+/// feature, before it creates the run directory.
+#[test]
+fn a_device_this_build_lacks_is_refused_before_the_run_directory_is_made() {
+    let dir = tempfile::tempdir().unwrap();
+    let (config, run) = (dir.path().join("gpu.toml"), dir.path().join("run"));
+    std::fs::write(&config, "[learner]\ndevice = \"cuda\"\n").unwrap();
+    let security = credentials().file("server");
+    let mut args = vec!["serve", "--security", &security];
+    args.extend(run_args(&config, &run));
+    let err = stderr_of_failure(&tweezer_system_tests::run("learner", &args));
+    assert!(err.contains("learner.device"), "{err}");
+    assert!(err.contains("--features cuda"), "{err}");
+    assert!(!run.exists(), "{err}");
+}
