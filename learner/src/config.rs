@@ -157,10 +157,10 @@ impl LearnerConfig {
         self.network.validate()?;
         self.td3.validate()?;
         self.limiter.validate()?;
-        // `device` is not opened here: a process that reads this config
-        // without training on it (`experiment`, the CLI) need not be built
-        // with the learner's GPU feature. `learner serve` and `bench` open
-        // it first and refuse one their build lacks.
+        // `device` is not opened here: `experiment`, which reads this
+        // config without training on it, need not be built with the
+        // learner's GPU feature. `learner config`, `serve` and `bench` open
+        // it and refuse one their build lacks.
         Ok(())
     }
 }
