@@ -173,6 +173,7 @@ impl<N: Networks> Td3<N> {
         replace_with(&mut self.critics, stand_in, |critics| {
             optim.step(c.critic_lr, critics, grads)
         });
+        settle_running_statistics(&self.critics);
         self.updates += 1;
         stats
     }
@@ -263,6 +264,17 @@ impl<N: Networks> Td3<N> {
 /// its result; on a worker, the step's own thread takes part in them.
 fn on_worker<R: Send>(step: impl FnOnce() -> R + Send) -> R {
     rayon::scope(|_| step())
+}
+
+/// Folds the BatchNorm running statistics that `module`'s last forward
+/// pass left pending into their values. Burn keeps each thread's update
+/// apart until something reads them all, and a training-mode forward pass
+/// reads only its own thread's: a step on another rayon worker than the
+/// last one would otherwise start from stale statistics, and the two
+/// threads' values would later be averaged. The actor step needs no call:
+/// its soft target updates read both networks' statistics.
+fn settle_running_statistics<M: Module>(module: &M) {
+    drop(module.valid());
 }
 
 /// Target policy smoothing: a' = clip(π'(s') + clip(ε, −c, c), −1, 1).

@@ -1,6 +1,6 @@
 //! TD3's pieces against hand-computed values, and the update's schedule.
 
-use burn::module::Module;
+use burn::module::{Module, ModuleVisitor, Param};
 use burn::nn::{Linear, LinearConfig};
 use burn::tensor::{Device, Distribution, Tensor, TensorData};
 use tweezer_gym::{EnvConfig, ImageConfig, Renderer, SplitMix64};
@@ -286,4 +286,62 @@ fn the_set_networks_train_with_the_same_schedule() {
         )
         .unwrap();
     assert_eq!(act(&restored), act(&td3));
+}
+
+/// Every float a module holds, parameters and BatchNorm running statistics
+/// alike, in visiting order.
+struct Floats(Vec<f32>);
+
+impl ModuleVisitor for Floats {
+    fn visit_float<const D: usize>(&mut self, param: &Param<Tensor<D>>) {
+        self.0.extend(values(param.val()));
+    }
+}
+
+fn floats<M: Module>(module: &M) -> Vec<f32> {
+    let mut floats = Floats(Vec::new());
+    module.visit(&mut floats);
+    floats.0
+}
+
+/// Burn keeps a BatchNorm's running statistics per thread until something
+/// reads them all; an update that runs on another thread than the last one
+/// (rayon's workers take turns) must still continue the same running
+/// averages. Two trainers from the same weights make the same updates, one
+/// always on one thread, the other moving between two: each on one thread,
+/// they compute the same numbers, bit for bit.
+#[test]
+fn batch_norm_statistics_do_not_depend_on_the_thread_an_update_runs_on() {
+    let pool = || {
+        rayon::ThreadPoolBuilder::new()
+            .num_threads(1)
+            .build()
+            .unwrap()
+    };
+    let (one, other) = (pool(), pool());
+    let device = Device::flex().autodiff();
+    let config = Td3Config {
+        policy_noise: 0.0,
+        ..Td3Config::default()
+    };
+    let mut steady = Td3::new(config.clone(), cnn(64, 80), &device).unwrap();
+    let mut moving = Td3::new(config, cnn(64, 80), &device).unwrap();
+    let state = steady.save_state().unwrap();
+    moving
+        .load_state(
+            |name| state.iter().find(|(n, _)| *n == name).map(|(_, b)| &b[..]),
+            0,
+        )
+        .unwrap();
+    for i in 0..6 {
+        let b = batch(8, &device);
+        let a = one.install(|| steady.update(b.clone()));
+        // A critic step on one thread, the actor step after it on another.
+        let thread = if matches!(i % 4, 1 | 2) { &other } else { &one };
+        let b = thread.install(|| moving.update(b));
+        assert_eq!(a, b, "update {i}");
+    }
+    // The running statistics of the critics show in the targets above;
+    // the actor's here.
+    assert!(floats(&steady.policy()) == floats(&moving.policy()));
 }
