@@ -3,6 +3,9 @@
 //! target critics, the critic loss; every `policy_delay` updates the actor
 //! loss and the soft target updates. Targets run without autodiff, so their
 //! BatchNorm layers use running statistics.
+//! On the CPU backend, passes that do not depend on each other run side by
+//! side (the TD target and the online critics, Q1 and Q2, their backward
+//! passes, π and Q1's encoder); elsewhere one after the other.
 //!
 //! Changes from the paper (`docs/spec.md`, "TD3"), each off or at the
 //! paper's value by default:
@@ -19,7 +22,7 @@
 //! the training thread that ties them together (`trainer`).
 
 use crate::fused_updates::{FusedAdam, blend};
-use burn::module::{Module, ModuleDisplay, ModuleMapper, Param};
+use burn::module::{Module, ModuleDisplay, ModuleMapper, ModuleVisitor, Param};
 use burn::nn::loss::{MseLoss, Reduction};
 use burn::optim::{GradientsParams, ModuleOptimizer, OptimizerRecord};
 use burn::store::{ModuleRecord, RecordError};
@@ -87,6 +90,9 @@ pub struct Td3<N: Networks> {
     actor_optim: ModuleOptimizer,
     critic_optim: ModuleOptimizer,
     updates: u64,
+    /// Whether the networks are on the CPU backend, where independent
+    /// passes run side by side.
+    on_cpu: bool,
 }
 
 impl<N: Networks> Td3<N> {
@@ -104,7 +110,8 @@ impl<N: Networks> Td3<N> {
 
     /// The critics' step: targets, the critic loss, backward, Adam.
     pub fn critic_step(&mut self, batch: &Minibatch<N::Input>) -> CriticStats {
-        on_worker(|| self.critic_step_here(batch))
+        let on_cpu = self.on_cpu;
+        on_worker(on_cpu, || self.critic_step_here(batch))
     }
 
     fn critic_step_here(&mut self, batch: &Minibatch<N::Input>) -> CriticStats {
@@ -118,56 +125,69 @@ impl<N: Networks> Td3<N> {
             next_input,
             next_vector,
         } = batch.clone();
+        let on_cpu = self.on_cpu;
 
-        // Target policy smoothing: a' = clip(π'(s') + clip(ε, -c, c), -1, 1).
-        let target_device = next_vector.device();
-        let (next_input, next_vector) = (N::valid(next_input), next_vector.valid());
-        let next_action = N::act(&self.actor_target, next_input.clone(), next_vector.clone());
-        let noise = Tensor::<2>::random(
-            next_action.shape(),
-            Distribution::Normal(0.0, c.policy_noise),
-            &next_action.device(),
-        );
-        let next_action = smoothed_target_action(next_action, noise, c.noise_clip);
-
-        // Clipped double Q: y = r + γ (1 - terminated) min(Q1'(s', a'), Q2'(s',
-        // a')).
-        let q = |critic: &N::Critic, input, vector, action| {
-            N::value(critic, N::features(critic, input), vector, action)
+        // The TD target (no autodiff) beside the online critics' passes.
+        let targets = (self.actor_target.clone(), self.critics_target.clone());
+        let td = move || {
+            let (actor, critics) = targets;
+            // Target policy smoothing: a' = clip(π'(s') + clip(ε, -c, c), -1, 1).
+            let target_device = next_vector.device();
+            let (next_input, next_vector) = (N::valid(next_input), next_vector.valid());
+            let next_action = N::act(&actor, next_input.clone(), next_vector.clone());
+            let noise = Tensor::<2>::random(
+                next_action.shape(),
+                Distribution::Normal(0.0, c.policy_noise),
+                &next_action.device(),
+            );
+            let next_action = smoothed_target_action(next_action, noise, c.noise_clip);
+            // Clipped double Q: y = r + γ (1 - terminated) min(Q1'(s', a'),
+            // Q2'(s', a')).
+            let (q1_next, q2_next) = side_by_side(
+                on_cpu,
+                q_of::<N>(
+                    critics.q1,
+                    next_input.clone(),
+                    next_vector.clone(),
+                    next_action.clone(),
+                ),
+                q_of::<N>(critics.q2, next_input, next_vector, next_action),
+            );
+            let y = td_target(
+                reward.valid() * c.reward_scale,
+                terminated.valid(),
+                q1_next,
+                q2_next,
+                c.gamma,
+            );
+            Tensor::from_inner(y).to_device(&target_device)
         };
-        let targets = &self.critics_target;
-        let q1_next = q(
-            &targets.q1,
-            next_input.clone(),
-            next_vector.clone(),
-            next_action.clone(),
-        );
-        let q2_next = q(&targets.q2, next_input, next_vector, next_action);
-        let y = td_target(
-            reward.valid() * c.reward_scale,
-            terminated.valid(),
-            q1_next,
-            q2_next,
-            c.gamma,
-        );
-        let y = Tensor::from_inner(y).to_device(&target_device);
+        let critics = self.critics.clone();
+        let online = move || {
+            side_by_side(
+                on_cpu,
+                q_of::<N>(critics.q1, input.clone(), vector.clone(), action.clone()),
+                q_of::<N>(critics.q2, input, vector, action),
+            )
+        };
+        let (y, (q1, q2)) = side_by_side(on_cpu, td, online);
 
-        // Critic loss: MSE(Q1(s, a), y) + MSE(Q2(s, a), y).
-        let q1 = q(
-            &self.critics.q1,
-            input.clone(),
-            vector.clone(),
-            action.clone(),
-        );
-        let q2 = q(&self.critics.q2, input, vector, action);
+        // Critic loss: MSE(Q1(s, a), y) + MSE(Q2(s, a), y). Each critic's
+        // parameters get gradients from their own term only: the two run
+        // backward side by side.
         let mse = MseLoss::new();
-        let critic_loss = mse.forward(q1.clone(), y.clone(), Reduction::Mean)
-            + mse.forward(q2, y, Reduction::Mean);
+        let loss_1 = mse.forward(q1.clone(), y.clone(), Reduction::Mean);
+        let loss_2 = mse.forward(q2, y, Reduction::Mean);
         let stats = CriticStats {
-            loss: scalar(&critic_loss),
+            loss: scalar(&loss_1) + scalar(&loss_2),
             mean_q: scalar(&q1.mean()),
         };
-        let grads = GradientsParams::from_grads(critic_loss.backward(), &self.critics);
+        let (grads_1, grads_2) = side_by_side(on_cpu, || loss_1.backward(), || loss_2.backward());
+        let mut grads = GradientsParams::from_grads(grads_1, &self.critics.q1);
+        self.critics.q2.visit(&mut Merge {
+            from: GradientsParams::from_grads(grads_2, &self.critics.q2),
+            into: &mut grads,
+        });
         let optim = &mut self.critic_optim;
         let stand_in = self.critics_target.clone();
         replace_with(&mut self.critics, stand_in, |critics| {
@@ -187,7 +207,8 @@ impl<N: Networks> Td3<N> {
     /// The delayed policy step and the soft target updates; returns the
     /// actor's loss.
     pub fn actor_step(&mut self, batch: Minibatch<N::Input>) -> f64 {
-        on_worker(|| self.actor_step_here(batch))
+        let on_cpu = self.on_cpu;
+        on_worker(on_cpu, || self.actor_step_here(batch))
     }
 
     fn actor_step_here(&mut self, batch: Minibatch<N::Input>) -> f64 {
@@ -196,10 +217,17 @@ impl<N: Networks> Td3<N> {
         // Actor loss: −Q1(s, π(s)), plus the optional action penalty.
         // Q1's encoder features do not depend on π: computed detached, the
         // backward pass skips Q1's encoder (its gradients would be thrown
-        // away).
-        let pi = N::act(&self.actor, input.clone(), vector.clone());
+        // away), and they are computed beside π(s).
+        let (actor, q1) = (self.actor.clone(), self.critics.q1.clone());
+        let (pi, features) = side_by_side(
+            self.on_cpu,
+            {
+                let (input, vector) = (input.clone(), vector.clone());
+                move || N::act(&actor, input, vector)
+            },
+            move || N::features(&q1, input).detach(),
+        );
         let penalty = pi.clone().powi_scalar(2).mean() * c.action_l2;
-        let features = N::features(&self.critics.q1, input).detach();
         let q = N::value(&self.critics.q1, features, vector, pi);
         let loss = q.mean().neg() + penalty;
         let actor_loss = scalar(&loss);
@@ -238,6 +266,7 @@ impl<N: Networks> Td3<N> {
             actor_optim: adam(&config),
             critic_optim: adam(&config),
             updates: 0,
+            on_cpu: tweezer_nets::is_cpu_backend(device),
             config,
         })
     }
@@ -258,12 +287,59 @@ impl<N: Networks> Td3<N> {
     }
 }
 
-/// Runs `step` on a worker of rayon's global pool, which the CPU backend's
-/// parallel loops run on. Called from any other thread, each of those
-/// loops (hundreds in an update) is a hand-over to the pool and a wait for
-/// its result; on a worker, the step's own thread takes part in them.
-fn on_worker<R: Send>(step: impl FnOnce() -> R + Send) -> R {
-    rayon::scope(|_| step())
+/// Runs `step` on a worker of rayon's global pool when `on_cpu`: the CPU
+/// backend's parallel loops run there. Called from any other thread, each
+/// of those loops (hundreds in an update) is a hand-over to the pool and a
+/// wait for its result; on a worker, the step's own thread takes part in
+/// them. Elsewhere on the calling thread: GPU runtimes queue work per
+/// thread, and a step hopping between workers made wgpu's updates come out
+/// wrong (`learner/tests/wgpu_backend.rs`).
+fn on_worker<R: Send>(on_cpu: bool, step: impl FnOnce() -> R + Send) -> R {
+    if on_cpu {
+        rayon::scope(|_| step())
+    } else {
+        step()
+    }
+}
+
+/// Runs `a` and `b` side by side when `on_cpu`: on the CPU backend the
+/// operations of one pass leave a core idle between them. Elsewhere one
+/// after the other: a GPU runs one pass's kernels in order.
+fn side_by_side<A: Send, B: Send>(
+    on_cpu: bool,
+    a: impl FnOnce() -> A + Send,
+    b: impl FnOnce() -> B + Send,
+) -> (A, B) {
+    if on_cpu {
+        rayon::join(a, b)
+    } else {
+        (a(), b())
+    }
+}
+
+/// Q(s, a) of `critic`, as a pass to run.
+fn q_of<N: Networks>(
+    critic: N::Critic,
+    input: N::Input,
+    vector: Tensor<2>,
+    action: Tensor<2>,
+) -> impl FnOnce() -> Tensor<2> + Send {
+    move || N::value(&critic, N::features(&critic, input), vector, action)
+}
+
+/// Moves the gradients of the visited module's parameters from `from`
+/// into `into`.
+struct Merge<'a> {
+    from: GradientsParams,
+    into: &'a mut GradientsParams,
+}
+
+impl ModuleVisitor for Merge<'_> {
+    fn visit_float<const D: usize>(&mut self, param: &Param<Tensor<D>>) {
+        if let Some(grad) = self.from.remove::<D>(param.id) {
+            self.into.register(param.id, grad);
+        }
+    }
 }
 
 /// Folds the BatchNorm running statistics that `module`'s last forward

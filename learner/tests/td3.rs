@@ -304,6 +304,36 @@ fn floats<M: Module>(module: &M) -> Vec<f32> {
     floats.0
 }
 
+/// TD3's defaults without target-policy noise: nothing random differs
+/// between two trainers.
+fn noiseless() -> Td3Config {
+    Td3Config {
+        policy_noise: 0.0,
+        ..Td3Config::default()
+    }
+}
+
+/// A rayon pool of `threads` threads.
+fn pool(threads: usize) -> rayon::ThreadPool {
+    rayon::ThreadPoolBuilder::new()
+        .num_threads(threads)
+        .build()
+        .unwrap()
+}
+
+/// A trainer of the same networks with `td3`'s weights, targets and
+/// optimiser states, target-policy noise off.
+fn twin<N: Networks>(td3: &Td3<N>, device: &Device) -> Td3<N> {
+    let mut twin = Td3::new(noiseless(), td3.networks().clone(), device).unwrap();
+    let state = td3.save_state().unwrap();
+    twin.load_state(
+        |name| state.iter().find(|(n, _)| *n == name).map(|(_, b)| &b[..]),
+        td3.updates(),
+    )
+    .unwrap();
+    twin
+}
+
 /// Burn keeps a BatchNorm's running statistics per thread until something
 /// reads them all; an update that runs on another thread than the last one
 /// (rayon's workers take turns) must still continue the same running
@@ -312,27 +342,10 @@ fn floats<M: Module>(module: &M) -> Vec<f32> {
 /// they compute the same numbers, bit for bit.
 #[test]
 fn batch_norm_statistics_do_not_depend_on_the_thread_an_update_runs_on() {
-    let pool = || {
-        rayon::ThreadPoolBuilder::new()
-            .num_threads(1)
-            .build()
-            .unwrap()
-    };
-    let (one, other) = (pool(), pool());
+    let (one, other) = (pool(1), pool(1));
     let device = Device::flex().autodiff();
-    let config = Td3Config {
-        policy_noise: 0.0,
-        ..Td3Config::default()
-    };
-    let mut steady = Td3::new(config.clone(), cnn(64, 80), &device).unwrap();
-    let mut moving = Td3::new(config, cnn(64, 80), &device).unwrap();
-    let state = steady.save_state().unwrap();
-    moving
-        .load_state(
-            |name| state.iter().find(|(n, _)| *n == name).map(|(_, b)| &b[..]),
-            0,
-        )
-        .unwrap();
+    let mut steady = Td3::new(noiseless(), cnn(64, 80), &device).unwrap();
+    let mut moving = twin(&steady, &device);
     for i in 0..6 {
         let b = batch(8, &device);
         let a = one.install(|| steady.update(b.clone()));
@@ -344,4 +357,62 @@ fn batch_norm_statistics_do_not_depend_on_the_thread_an_update_runs_on() {
     // The running statistics of the critics show in the targets above;
     // the actor's here.
     assert!(floats(&steady.policy()) == floats(&moving.policy()));
+}
+
+/// On the CPU backend the update runs independent passes side by side (the
+/// TD target beside the online critics, Q1 beside Q2, the two critics'
+/// backward passes, π beside Q1's encoder). On two threads it computes
+/// what it computes on one, where they run one after the other, to float
+/// rounding: for fresh networks of both architectures, several updates
+/// each.
+#[test]
+fn passes_side_by_side_agree_with_passes_one_after_the_other() {
+    let (one, two) = (pool(1), pool(2));
+    let device = Device::flex().autodiff();
+    let close = |what: &str, a: f64, b: f64| {
+        assert!(
+            (a - b).abs() <= 1e-4 * a.abs().max(b.abs()).max(1.0),
+            "{what}: one thread {a}, two {b}"
+        );
+    };
+    fn agree<N: Networks>(
+        mut sequential: Td3<N>,
+        batches: impl Fn() -> Minibatch<N::Input>,
+        one: &rayon::ThreadPool,
+        two: &rayon::ThreadPool,
+        device: &Device,
+        close: impl Fn(&str, f64, f64),
+    ) {
+        let mut parallel = twin(&sequential, device);
+        for i in 0..6 {
+            let b = batches();
+            let a = one.install(|| sequential.update(b.clone()));
+            let b = two.install(|| parallel.update(b));
+            close(
+                &format!("critic loss of update {i}"),
+                a.critic_loss,
+                b.critic_loss,
+            );
+            close(&format!("mean Q of update {i}"), a.mean_q, b.mean_q);
+            assert_eq!(a.actor_loss.is_some(), b.actor_loss.is_some());
+            if let (Some(a), Some(b)) = (a.actor_loss, b.actor_loss) {
+                close(&format!("actor loss of update {i}"), a, b);
+            }
+        }
+    }
+    for _ in 0..16 {
+        let cnn = Td3::new(noiseless(), cnn(64, 80), &device).unwrap();
+        agree(cnn, || batch(8, &device), &one, &two, &device, close);
+        let fov = EnvConfig::default().fov_px;
+        let networks = SetNetworks::new(SetShape::new(fov), fov);
+        let sets = Td3::new(noiseless(), networks.clone(), &device).unwrap();
+        agree(
+            sets,
+            || set_batch(8, &networks, &device),
+            &one,
+            &two,
+            &device,
+            close,
+        );
+    }
 }

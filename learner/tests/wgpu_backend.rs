@@ -47,7 +47,10 @@ fn replay(env: &EnvConfig) -> Replay {
 
 /// `updates` TD3 updates of the same networks, from the same weights, on
 /// the same batches, on the CPU and on wgpu; target-policy noise off, so
-/// that nothing random differs.
+/// that nothing random differs. The CPU trainer runs its passes side by
+/// side on both of rayon's workers; wgpu's steps must not follow them from
+/// worker to worker (they did, and about 3 set-network runs in 10 went
+/// wrong on wgpu).
 fn updates_on_both<N: Networks>(networks: N, updates: usize) -> Vec<(UpdateStats, UpdateStats)> {
     let env = env();
     let replay = replay(&env);
