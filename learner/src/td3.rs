@@ -78,8 +78,8 @@ pub struct TwinCritic<C: Module + ModuleDisplay> {
     q2: C,
 }
 
-/// The learner's networks, their targets and optimisers.
-#[derive(Clone)]
+/// The learner's networks, their targets and optimisers. A clone is an
+/// independent copy (see its `Clone`).
 pub struct Td3<N: Networks> {
     config: Td3Config,
     networks: N,
@@ -93,6 +93,29 @@ pub struct Td3<N: Networks> {
     /// Whether the networks are on the CPU backend, where independent
     /// passes run side by side.
     on_cpu: bool,
+}
+
+/// An independent copy, as the divergence guard's copy to roll back to
+/// must be. A derived clone would share the BatchNorm running statistics:
+/// Burn keeps them behind a lock that clones share, so every training pass
+/// of the original would move the copy's statistics too. Parameters and
+/// optimiser states are shared until written, and the CPU backend then
+/// copies them instead of writing over them.
+impl<N: Networks> Clone for Td3<N> {
+    fn clone(&self) -> Self {
+        Self {
+            config: self.config.clone(),
+            networks: self.networks.clone(),
+            actor: self.actor.valid().train(),
+            critics: self.critics.valid().train(),
+            actor_target: self.actor_target.valid(),
+            critics_target: self.critics_target.valid(),
+            actor_optim: self.actor_optim.clone(),
+            critic_optim: self.critic_optim.clone(),
+            updates: self.updates,
+            on_cpu: self.on_cpu,
+        }
+    }
 }
 
 impl<N: Networks> Td3<N> {

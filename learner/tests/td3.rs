@@ -232,18 +232,22 @@ fn a_diverged_update_rolls_back_to_the_last_good_networks_and_repeated_ones_give
         guard.check(td3, &stats)
     };
 
-    let fresh = act(&td3);
+    // Everything a checkpoint holds, BatchNorm running statistics and
+    // Adam's moments included, comes back as it was.
+    let state = |td3: &Td3<PaperNetworks>| td3.save_state().unwrap();
+    let (fresh, fresh_state) = (act(&td3), state(&td3));
     assert_eq!(
         poisoned(&mut td3, &mut guard),
         Verdict::RolledBack { lost: 1 }
     );
     assert_eq!((act(&td3), td3.updates()), (fresh.clone(), 0));
+    assert!(state(&td3) == fresh_state, "the rollback left state behind");
 
     for _ in 0..GOOD_RUN {
         let stats = td3.update(batch(1.0));
         assert_eq!(guard.check(&mut td3, &stats), Verdict::Finite);
     }
-    let trained = act(&td3);
+    let (trained, trained_state) = (act(&td3), state(&td3));
     assert_ne!(trained, fresh);
     for _ in 1..MAX_ROLLBACKS {
         assert_eq!(
@@ -251,6 +255,10 @@ fn a_diverged_update_rolls_back_to_the_last_good_networks_and_repeated_ones_give
             Verdict::RolledBack { lost: 1 }
         );
         assert_eq!((act(&td3), td3.updates()), (trained.clone(), GOOD_RUN));
+        assert!(
+            state(&td3) == trained_state,
+            "the rollback left state behind"
+        );
     }
     assert_eq!(poisoned(&mut td3, &mut guard), Verdict::GiveUp { lost: 1 });
     assert_eq!(act(&td3), trained);
