@@ -2,7 +2,6 @@
 //! real socket: status, overlay, episodes, telemetry, emergency stop and
 //! its reset, refusals, and shutdown on SIGTERM.
 
-use std::process::Child;
 use std::time::{Duration, Instant};
 use tonic::Code;
 use tonic_health::pb::HealthCheckRequest;
@@ -11,24 +10,15 @@ use tonic_health::pb::health_client::HealthClient;
 use tweezer_proto::pb;
 use tweezer_proto::pb::hardware_agent_client::HardwareAgentClient;
 use tweezer_rpc::AuthChannel;
-use tweezer_system_tests::{Running, connect, signal, start_agent};
+use tweezer_system_tests::{Running, connect, start_agent};
 
-/// The daemon, killed if the test fails before stopping it.
-struct Daemon(Child);
-
-impl Drop for Daemon {
-    fn drop(&mut self) {
-        let _ = self.0.kill();
-        let _ = self.0.wait();
-    }
-}
-
-fn start(records: &std::path::Path) -> (Daemon, String) {
+/// The daemon, killed if the test fails before stopping it, and its address.
+fn start(records: &std::path::Path) -> (Running, String) {
     let (child, addr) = start_agent(
         &["--rate", "20", "--records", records.to_str().unwrap()],
         None,
     );
-    (Daemon(child), addr)
+    (Running::new(child), addr)
 }
 
 fn state(status: &pb::AgentStatus) -> pb::AgentState {
@@ -89,7 +79,7 @@ fn seeded(seed: u64) -> pb::StartEpisodeRequest {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn the_daemon_runs_episodes_stops_them_and_refuses_what_it_must() {
     let dir = tempfile::tempdir().unwrap();
-    let (mut daemon, addr) = start(dir.path());
+    let (daemon, addr) = start(dir.path());
     let mut client = HardwareAgentClient::new(connect(&addr, "control").await);
 
     let status = wait_for(&mut client, pb::AgentState::Idle, Duration::from_secs(5)).await;
@@ -239,16 +229,10 @@ async fn the_daemon_runs_episodes_stops_them_and_refuses_what_it_must() {
         .into_inner();
     assert_eq!(state(&status), pb::AgentState::Idle);
 
-    // SIGTERM ends the daemon cleanly.
-    signal(&daemon.0, "TERM");
-    let deadline = Instant::now() + Duration::from_secs(10);
-    let exit = loop {
-        if let Some(exit) = daemon.0.try_wait().unwrap() {
-            break exit;
-        }
-        assert!(Instant::now() < deadline, "the daemon did not stop");
-        std::thread::sleep(Duration::from_millis(20));
-    };
+    // SIGTERM ends the daemon cleanly, within 10 s.
+    let asked = Instant::now();
+    let (exit, _) = daemon.stop();
+    assert!(asked.elapsed() < Duration::from_secs(10), "slow to stop");
     assert!(exit.success(), "{exit:?}");
     let records = std::fs::read_dir(dir.path()).unwrap().count();
     assert_eq!(records, 4, "two episodes: a record and a picture each");

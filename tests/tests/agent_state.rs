@@ -4,30 +4,19 @@
 //! "file" that would block (a FIFO) is refused; and random sequences of
 //! every RPC keep the model's rules.
 
-use std::process::Child;
 use std::time::{Duration, Instant};
 use tonic::Code;
 use tweezer_gym::SplitMix64;
 use tweezer_proto::pb;
 use tweezer_proto::pb::hardware_agent_client::HardwareAgentClient;
 use tweezer_rpc::AuthChannel;
-use tweezer_system_tests::{AGENT_CONTROL, connect, start_configured_agent, write};
+use tweezer_system_tests::{AGENT_CONTROL, Running, connect, start_configured_agent, write};
 
 type Client = HardwareAgentClient<AuthChannel>;
 
-/// The daemon, killed when the test ends.
-struct Daemon(Child);
-
-impl Drop for Daemon {
-    fn drop(&mut self) {
-        let _ = self.0.kill();
-        let _ = self.0.wait();
-    }
-}
-
 /// A daemon on the twin whose `[policy]` learner is `learner`, fetched
-/// within 2 s.
-fn start(dir: &std::path::Path, learner: &str) -> (Daemon, String) {
+/// within 2 s (killed when the test ends), and its address.
+fn start(dir: &std::path::Path, learner: &str) -> (Running, String) {
     let config = write(
         &dir.join("agent.toml"),
         &format!("{AGENT_CONTROL}[policy]\nlearner = \"{learner}\"\ntimeout_s = 2.0\n"),
@@ -38,7 +27,7 @@ fn start(dir: &std::path::Path, learner: &str) -> (Daemon, String) {
         &["--rate", "20", "--records", records.to_str().unwrap()],
         None,
     );
-    (Daemon(child), addr)
+    (Running::new(child), addr)
 }
 
 fn state(status: &pb::AgentStatus) -> pb::AgentState {
