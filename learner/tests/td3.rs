@@ -1,5 +1,8 @@
 //! TD3's pieces against hand-computed values, and the update's schedule.
 
+mod agreement;
+
+use agreement::assert_same_update;
 use burn::module::{Module, ModuleVisitor, Param};
 use burn::nn::{Linear, LinearConfig};
 use burn::tensor::{Device, Distribution, Tensor, TensorData};
@@ -377,40 +380,24 @@ fn batch_norm_statistics_do_not_depend_on_the_thread_an_update_runs_on() {
 fn passes_side_by_side_agree_with_passes_one_after_the_other() {
     let (one, two) = (pool(1), pool(2));
     let device = Device::flex().autodiff();
-    let close = |what: &str, a: f64, b: f64| {
-        assert!(
-            (a - b).abs() <= 1e-4 * a.abs().max(b.abs()).max(1.0),
-            "{what}: one thread {a}, two {b}"
-        );
-    };
     fn agree<N: Networks>(
         mut sequential: Td3<N>,
         batches: impl Fn() -> Minibatch<N::Input>,
         one: &rayon::ThreadPool,
         two: &rayon::ThreadPool,
         device: &Device,
-        close: impl Fn(&str, f64, f64),
     ) {
         let mut parallel = twin(&sequential, device);
         for i in 0..6 {
             let b = batches();
             let a = one.install(|| sequential.update(b.clone()));
             let b = two.install(|| parallel.update(b));
-            close(
-                &format!("critic loss of update {i}"),
-                a.critic_loss,
-                b.critic_loss,
-            );
-            close(&format!("mean Q of update {i}"), a.mean_q, b.mean_q);
-            assert_eq!(a.actor_loss.is_some(), b.actor_loss.is_some());
-            if let (Some(a), Some(b)) = (a.actor_loss, b.actor_loss) {
-                close(&format!("actor loss of update {i}"), a, b);
-            }
+            assert_same_update(i, (&a, &b), ["one thread", "two"], 1e-4);
         }
     }
     for _ in 0..16 {
         let cnn = Td3::new(noiseless(), cnn(64, 80), &device).unwrap();
-        agree(cnn, || batch(8, &device), &one, &two, &device, close);
+        agree(cnn, || batch(8, &device), &one, &two, &device);
         let fov = EnvConfig::default().fov_px;
         let networks = SetNetworks::new(SetShape::new(fov), fov);
         let sets = Td3::new(noiseless(), networks.clone(), &device).unwrap();
@@ -420,7 +407,6 @@ fn passes_side_by_side_agree_with_passes_one_after_the_other() {
             &one,
             &two,
             &device,
-            close,
         );
     }
 }

@@ -3,6 +3,9 @@
 //! with the CPU backend's, and `learner serve` trains over real gRPC.
 #![cfg(feature = "wgpu")]
 
+mod agreement;
+
+use agreement::assert_same_update;
 use burn::tensor::{Device, DeviceKind};
 use std::io::{BufRead, BufReader};
 use std::process::{Child, Command, Stdio};
@@ -79,25 +82,9 @@ fn updates_on_both<N: Networks>(networks: N, updates: usize) -> Vec<(UpdateStats
         .collect()
 }
 
-fn close(what: &str, a: f64, b: f64) {
-    assert!(
-        (a - b).abs() <= 1e-3 * a.abs().max(b.abs()).max(1.0),
-        "{what}: flex {a} vs wgpu {b}"
-    );
-}
-
 fn check(pairs: &[(UpdateStats, UpdateStats)]) {
     for (i, (flex, gpu)) in pairs.iter().enumerate() {
-        close(
-            &format!("critic loss of update {i}"),
-            flex.critic_loss,
-            gpu.critic_loss,
-        );
-        close(&format!("mean Q of update {i}"), flex.mean_q, gpu.mean_q);
-        assert_eq!(flex.actor_loss.is_some(), gpu.actor_loss.is_some());
-        if let (Some(a), Some(b)) = (flex.actor_loss, gpu.actor_loss) {
-            close(&format!("actor loss of update {i}"), a, b);
-        }
+        assert_same_update(i, (flex, gpu), ["flex", "wgpu"], 1e-3);
     }
 }
 
