@@ -200,6 +200,13 @@ impl Geometry {
         self.out_height * self.out_width
     }
 
+    /// Whether the output has the input's size, one output pixel per input
+    /// pixel (stride 1, padding (kernel − 1) / 2): the encoder's third
+    /// layer.
+    fn keeps_size(&self) -> bool {
+        self.out_height == self.height && self.out_width == self.width && self.stride == 1
+    }
+
     /// Images per column matrix: enough for a product of ~2,000 columns (the
     /// whole batch at 40 × 32), one at a time where an image alone has
     /// more (320 × 256), so that the matrix stays a few megabytes.
@@ -228,13 +235,39 @@ fn tensor(values: Vec<f32>, shape: impl Into<Shape>) -> FlexTensor {
     )
 }
 
-/// The images `images` of `x` (`[batch, in, h, w]`) as a column matrix
-/// `[patch, images × out pixels]`: row (c, ky, kx), column (image, oy, ox)
-/// holds `x[image, c, oy·s + ky − p, ox·s + kx − p]`, zero outside.
-fn im2col(x: &[f32], g: Geometry, images: Range<usize>) -> FlexTensor {
+/// The column matrices of one convolution's chunks of images, in one
+/// buffer while nothing else holds it: chunks of as many images have their
+/// padding in the same places, so a refill leaves those zeros as they are.
+#[derive(Default)]
+struct Columns(Option<FlexTensor>);
+
+impl Columns {
+    /// The images `images` of `x` (`[batch, in, h, w]`) as a column matrix
+    /// `[patch, images × out pixels]`: row (c, ky, kx), column (image, oy,
+    /// ox) holds `x[image, c, oy·s + ky − p, ox·s + kx − p]`, zero outside.
+    fn of(&mut self, x: &[f32], g: Geometry, images: Range<usize>) -> FlexTensor {
+        let shape = [g.patch(), images.len() * g.out_pixels()];
+        let mut cols = match self.0.take() {
+            Some(cols) if cols.layout().shape().dims::<2>() == shape => cols,
+            _ => tensor(vec![0f32; shape.iter().product()], shape),
+        };
+        match cols.try_storage_mut() {
+            Some(storage) => im2col(storage, x, g, images),
+            None => {
+                cols = tensor(vec![0f32; shape.iter().product()], shape);
+                im2col(cols.storage_mut(), x, g, images);
+            }
+        }
+        self.0 = Some(cols.clone());
+        cols
+    }
+}
+
+/// Writes the column matrix of `images` (see [`Columns::of`]) into `cols`,
+/// except for its padding, which stays as it is (zero).
+fn im2col(cols: &mut [f32], x: &[f32], g: Geometry, images: Range<usize>) {
     let (k, plane, n) = (g.kernel, g.height * g.width, g.out_pixels());
     let columns = images.len() * n;
-    let mut cols = vec![0f32; g.patch() * columns];
     cols.par_chunks_mut(columns)
         .enumerate()
         .for_each(|(row, col)| {
@@ -245,22 +278,33 @@ fn im2col(x: &[f32], g: Geometry, images: Range<usize>) -> FlexTensor {
             );
             for (image, out) in images.clone().zip(col.chunks_exact_mut(n)) {
                 let channel = &x[(image * g.channels_in + c) * plane..][..plane];
+                if g.keeps_size() {
+                    // Output row oy is input row oy + ky − p shifted by kx −
+                    // p: the rows ys are one block of the plane, shifted,
+                    // whose columns outside xs are then zeroed again.
+                    let shift = (ky * g.width + kx) as isize - (g.padding * (g.width + 1)) as isize;
+                    let (start, end) = (ys.start * g.width, ys.end * g.width);
+                    let skip = (-(start as isize + shift)).max(0) as usize;
+                    let cut = (end as isize + shift - plane as isize).max(0) as usize;
+                    let from = (start + skip).saturating_add_signed(shift);
+                    out[start + skip..end - cut]
+                        .copy_from_slice(&channel[from..][..end - cut - start - skip]);
+                    for line in out[start..end].chunks_exact_mut(g.width) {
+                        line[..xs.start].fill(0.0);
+                        line[xs.end..].fill(0.0);
+                    }
+                    continue;
+                }
                 for oy in ys.clone() {
                     let line = &channel[(oy * g.stride + ky - g.padding) * g.width..][..g.width];
                     let out = &mut out[oy * g.out_width..][xs.clone()];
                     let first = xs.start * g.stride + kx - g.padding;
-                    if g.stride == 1 {
-                        out.copy_from_slice(&line[first..][..out.len()]);
-                    } else {
-                        let src = line[first..].iter().step_by(g.stride);
-                        for (v, s) in out.iter_mut().zip(src) {
-                            *v = *s;
-                        }
+                    for (j, v) in out.iter_mut().enumerate() {
+                        *v = line[first + j * g.stride];
                     }
                 }
             }
         });
-    tensor(cols, [g.patch(), columns])
 }
 
 /// Adds the gradient of a column matrix of `images` back into those
@@ -457,11 +501,14 @@ fn forward(x: &FlexTensor, weight: &FlexTensor, bias: &FlexTensor, g: Geometry) 
     let weight = weight.reshape(Shape::from([g.channels_out, g.patch()]));
     let n = g.out_pixels();
     let mut out = vec![0f32; g.batch * g.channels_out * n];
+    let mut columns = Columns::default();
     for images in chunks(g) {
         // [out, images × out pixels] → [images, out, out pixels], plus the
         // bias.
-        let y =
-            burn_flex::ops::matmul::matmul(weight.clone(), im2col(x.storage(), g, images.clone()));
+        let y = burn_flex::ops::matmul::matmul(
+            weight.clone(),
+            columns.of(x.storage(), g, images.clone()),
+        );
         let y = y.storage::<f32>();
         let columns = images.len() * n;
         out[images.start * g.channels_out * n..images.end * g.channels_out * n]
@@ -516,6 +563,7 @@ fn backward(
     }
     let mut dweight = vec![0f32; g.channels_out * g.patch()];
     let mut dx = input_grad.then(|| vec![0f32; g.batch * g.channels_in * g.height * g.width]);
+    let mut matrices = Columns::default();
     for images in chunks(g) {
         // dy of these images `[images, out, out pixels]` → `[out, images ×
         // out pixels]`.
@@ -532,7 +580,7 @@ fn backward(
             *db += row.iter().sum::<f32>();
         }
         let dyt = tensor(dyt, [g.channels_out, columns]);
-        let cols = im2col(x.storage(), g, images.clone());
+        let cols = matrices.of(x.storage(), g, images.clone());
         let dw = burn_flex::ops::matmul::matmul(dyt.clone(), cols.transpose(0, 1));
         for (a, d) in dweight.iter_mut().zip(dw.storage::<f32>()) {
             *a += d;
@@ -658,6 +706,9 @@ mod tests {
         check(Input::Dense, 45, [3, 5], [10, 10], 3, 1, 1);
         // 1,600: one image at a time.
         check(Input::Dense, 4, [2, 3], [40, 40], 3, 1, 1);
+        // Strided with padding, 400: chunks of 5, 5 and 2 images, the
+        // second refilling the first's matrix.
+        check(Input::Dense, 12, [2, 3], [40, 40], 4, 2, 1);
     }
 
     #[test]
