@@ -82,7 +82,7 @@ impl BatchNormInference for Flex {
             epsilon,
         };
         s.normalise(
-            &x.to_contiguous(),
+            x,
             gamma.to_contiguous().storage(),
             beta.to_contiguous().storage(),
         )
@@ -117,9 +117,10 @@ impl BatchNormTraining for Flex {
         beta: FlexTensor,
         epsilon: f64,
     ) -> (FlexTensor, FlexTensor, FlexTensor) {
-        let s = Statistics::of(&x.to_contiguous(), epsilon);
+        let x = x.to_contiguous();
+        let s = Statistics::of(&x, epsilon);
         let y = s.normalise(
-            &x.to_contiguous(),
+            x,
             gamma.to_contiguous().storage(),
             beta.to_contiguous().storage(),
         );
@@ -301,24 +302,42 @@ impl Statistics {
         (1.0 / (f64::from(self.variance[c]) + self.epsilon).sqrt()) as f32
     }
 
-    /// γ (x − mean) / sqrt(variance + ε) + β.
-    fn normalise(&self, x: &FlexTensor, gamma: &[f32], beta: &[f32]) -> FlexTensor {
-        let shape = x.layout().shape().clone();
-        let x = x.storage::<f32>();
-        let plane = x.len() / (shape[0] * self.channels);
-        let mut y = vec![0f32; x.len()];
-        y.par_chunks_mut(plane)
+    /// γ (x − mean) / sqrt(variance + ε) + β, written over `x` where
+    /// nothing else holds it (in inference, where nothing needs the input
+    /// again).
+    fn normalise(&self, x: FlexTensor, gamma: &[f32], beta: &[f32]) -> FlexTensor {
+        let mut y = x.to_contiguous();
+        drop(x);
+        let plane = y.layout().shape().num_elements() / (y.layout().shape()[0] * self.channels);
+        let affine = |index: usize| {
+            let c = index % self.channels;
+            let scale = gamma[c] * self.inverse_std(c);
+            (scale, beta[c] - self.mean[c] * scale)
+        };
+        if let Some(values) = y.try_storage_mut::<f32>() {
+            values
+                .par_chunks_mut(plane)
+                .enumerate()
+                .for_each(|(index, values)| {
+                    let (scale, shift) = affine(index);
+                    for v in values {
+                        *v = *v * scale + shift;
+                    }
+                });
+            return y;
+        }
+        let x = y.storage::<f32>();
+        let mut out = vec![0f32; x.len()];
+        out.par_chunks_mut(plane)
             .zip(x.par_chunks(plane))
             .enumerate()
-            .for_each(|(index, (y, x))| {
-                let c = index % self.channels;
-                let scale = gamma[c] * self.inverse_std(c);
-                let shift = beta[c] - self.mean[c] * scale;
-                for (y, x) in y.iter_mut().zip(x) {
-                    *y = x * scale + shift;
+            .for_each(|(index, (out, x))| {
+                let (scale, shift) = affine(index);
+                for (out, x) in out.iter_mut().zip(x) {
+                    *out = x * scale + shift;
                 }
             });
-        tensor(y, shape)
+        tensor(out, y.layout().shape().clone())
     }
 
     /// The gradients from the output gradient `dy`: with x̂ the normalised
@@ -440,9 +459,11 @@ mod tests {
             plain.valid(),
             random(shape.to_vec(), offset).reshape(shape).inner(),
         );
-        batch_norm_inference(&layer, x.clone())
+        let expected = layer.forward(x.clone()).into_data();
+        // Here `x` is the only handle: normalised in place.
+        batch_norm_inference(&layer, x)
             .into_data()
-            .assert_approx_eq::<f32>(&layer.forward(x).into_data(), tolerance());
+            .assert_approx_eq::<f32>(&expected, tolerance());
     }
 
     #[test]
