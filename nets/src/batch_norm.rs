@@ -11,6 +11,7 @@
 //! to 1e-4, outputs, gradients and running statistics. Other devices keep
 //! Burn's.
 
+use crate::batch_conv::tensor;
 use burn::backend::autodiff::NodeId;
 use burn::backend::autodiff::checkpoint::base::Checkpointer;
 use burn::backend::autodiff::checkpoint::strategy::CheckpointStrategy;
@@ -19,8 +20,8 @@ use burn::backend::autodiff::ops::{Backward, Ops, OpsKind};
 use burn::backend::tensor::FloatTensor;
 use burn::backend::{Autodiff, Backend, Dispatch, Flex, backend_extension};
 use burn::nn::BatchNorm;
-use burn::tensor::{Bytes, DType, Shape, Tensor};
-use burn_flex::{FlexTensor, Layout};
+use burn::tensor::Tensor;
+use burn_flex::FlexTensor;
 use rayon::prelude::*;
 
 /// BatchNorm with the statistics of the batch.
@@ -216,15 +217,6 @@ impl<C: CheckpointStrategy> BatchNormTraining for Autodiff<Flex, C> {
             }
         }
     }
-}
-
-/// A contiguous f32 tensor of `shape` holding `values`.
-fn tensor(values: Vec<f32>, shape: impl Into<Shape>) -> FlexTensor {
-    FlexTensor::new(
-        Bytes::from_elems(values),
-        Layout::contiguous(shape.into()),
-        DType::F32,
-    )
 }
 
 /// Σ f(a, b) over the pairs of `a` and `b`, in eight running sums (which
