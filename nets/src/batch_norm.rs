@@ -1,14 +1,16 @@
-//! The encoder's BatchNorm on Burn's CPU backend (flex): in training the
-//! batch statistics and the normalisation in two passes over the input,
-//! the gradient in two more; in inference (running statistics) one pass.
+//! The encoder's BatchNorm and the ReLU after it on Burn's CPU backend
+//! (flex): in training the batch statistics and the normalisation in two
+//! passes over the input, the gradient in two more; in inference (running
+//! statistics) one pass.
 //!
 //! Burn composes a training BatchNorm of about a dozen tensor operations
-//! forward and as many backward, and an inference one of four, each a pass
-//! over the activations into a fresh tensor, several of them copies that
-//! move the channels first. Here each pass reads a channel's planes in
-//! place. It is the same normalisation (biased batch variance, Burn's
-//! running-statistics update): the tests check it against Burn's BatchNorm
-//! to 1e-4, outputs, gradients and running statistics. Other devices keep
+//! forward and as many backward, an inference one of four, and a ReLU of
+//! two each way, each a pass over the activations into a fresh tensor,
+//! several of them copies that move the channels first. Here each pass
+//! reads a channel's planes in place. It is the same function (biased batch
+//! variance, Burn's running-statistics update, ReLU's gradient zero where
+//! its output is): the tests check it against Burn's BatchNorm and ReLU to
+//! 1e-4, outputs, gradients and running statistics. Other devices keep
 //! Burn's.
 
 use crate::batch_conv::tensor;
@@ -24,13 +26,13 @@ use burn::tensor::Tensor;
 use burn_flex::FlexTensor;
 use rayon::prelude::*;
 
-/// BatchNorm with the statistics of the batch.
+/// BatchNorm with the statistics of the batch, then ReLU.
 #[backend_extension(Flex, Autodiff)]
-pub trait BatchNormTraining: Backend {
+pub trait BatchNormReluTraining: Backend {
     /// `x` `[batch, channels, h, w]`, `gamma` and `beta` `[channels]` →
-    /// (the normalised `x`, the batch mean, the biased batch variance), the
-    /// statistics `[channels]` and untracked.
-    fn batch_norm_training(
+    /// (ReLU of the normalised `x`, the batch mean, the biased batch
+    /// variance), the statistics `[channels]` and untracked.
+    fn batch_norm_relu_training(
         x: FloatTensor<Self>,
         gamma: FloatTensor<Self>,
         beta: FloatTensor<Self>,
@@ -38,12 +40,12 @@ pub trait BatchNormTraining: Backend {
     ) -> (FloatTensor<Self>, FloatTensor<Self>, FloatTensor<Self>);
 }
 
-/// BatchNorm with given statistics (the running ones).
+/// BatchNorm with given statistics (the running ones), then ReLU.
 #[backend_extension(Flex)]
-pub trait BatchNormInference: Backend {
-    /// `x` `[batch, channels, h, w]`, the rest `[channels]` → the
+pub trait BatchNormReluInference: Backend {
+    /// `x` `[batch, channels, h, w]`, the rest `[channels]` → ReLU of the
     /// normalised `x`.
-    fn batch_norm_inference(
+    fn batch_norm_relu_inference(
         x: FloatTensor<Self>,
         gamma: FloatTensor<Self>,
         beta: FloatTensor<Self>,
@@ -53,22 +55,24 @@ pub trait BatchNormInference: Backend {
     ) -> FloatTensor<Self>;
 }
 
-/// `layer` applied to `x` with its running statistics, as Burn's
+/// ReLU of `layer` applied to `x` with its running statistics, as Burn's
 /// [`BatchNorm::forward`] does without autodiff; only on the CPU backend
 /// without autodiff.
-pub fn batch_norm_inference(layer: &BatchNorm, x: Tensor<4>) -> Tensor<4> {
-    Tensor::from_dispatch(<Dispatch as BatchNormInference>::batch_norm_inference(
-        x.into_dispatch(),
-        layer.gamma.val().into_dispatch(),
-        layer.beta.val().into_dispatch(),
-        layer.running_mean.value().into_dispatch(),
-        layer.running_var.value().into_dispatch(),
-        layer.epsilon,
-    ))
+pub fn batch_norm_relu_inference(layer: &BatchNorm, x: Tensor<4>) -> Tensor<4> {
+    Tensor::from_dispatch(
+        <Dispatch as BatchNormReluInference>::batch_norm_relu_inference(
+            x.into_dispatch(),
+            layer.gamma.val().into_dispatch(),
+            layer.beta.val().into_dispatch(),
+            layer.running_mean.value().into_dispatch(),
+            layer.running_var.value().into_dispatch(),
+            layer.epsilon,
+        ),
+    )
 }
 
-impl BatchNormInference for Flex {
-    fn batch_norm_inference(
+impl BatchNormReluInference for Flex {
+    fn batch_norm_relu_inference(
         x: FlexTensor,
         gamma: FlexTensor,
         beta: FlexTensor,
@@ -90,11 +94,11 @@ impl BatchNormInference for Flex {
     }
 }
 
-/// `layer` applied to `x` in training, as Burn's [`BatchNorm::forward`]
-/// does, running statistics included; only on the CPU backend with
+/// ReLU of `layer` applied to `x` in training, as Burn's
+/// [`BatchNorm::forward`] does, running statistics included; only on the CPU backend with
 /// autodiff (see [`crate::is_cpu_backend`]).
-pub fn batch_norm_training(layer: &BatchNorm, x: Tensor<4>) -> Tensor<4> {
-    let (y, mean, variance) = <Dispatch as BatchNormTraining>::batch_norm_training(
+pub fn batch_norm_relu_training(layer: &BatchNorm, x: Tensor<4>) -> Tensor<4> {
+    let (y, mean, variance) = <Dispatch as BatchNormReluTraining>::batch_norm_relu_training(
         x.into_dispatch(),
         layer.gamma.val().into_dispatch(),
         layer.beta.val().into_dispatch(),
@@ -111,8 +115,8 @@ pub fn batch_norm_training(layer: &BatchNorm, x: Tensor<4>) -> Tensor<4> {
     Tensor::from_dispatch(y)
 }
 
-impl BatchNormTraining for Flex {
-    fn batch_norm_training(
+impl BatchNormReluTraining for Flex {
+    fn batch_norm_relu_training(
         x: FlexTensor,
         gamma: FlexTensor,
         beta: FlexTensor,
@@ -135,13 +139,14 @@ impl BatchNormTraining for Flex {
 struct BatchNormBackward;
 
 impl Backward<Flex, 3> for BatchNormBackward {
-    /// The checkpointed input and gamma, the batch mean and variance, ε.
-    type State = (NodeId, NodeId, FlexTensor, FlexTensor, f64);
+    /// The checkpointed input and gamma, β, the batch mean and variance,
+    /// ε.
+    type State = (NodeId, NodeId, FlexTensor, FlexTensor, FlexTensor, f64);
 
     fn backward(self, ops: Ops<Self::State, 3>, grads: &mut Gradients, cp: &mut Checkpointer) {
         let [node_x, node_gamma, node_beta] = ops.parents;
         let dy: FlexTensor = grads.consume::<Flex>(&ops.node);
-        let (x, gamma, mean, variance, epsilon) = ops.state;
+        let (x, gamma, beta, mean, variance, epsilon) = ops.state;
         let x: FlexTensor = cp.retrieve_node_output(x);
         let gamma: FlexTensor = cp.retrieve_node_output(gamma);
         let x = x.to_contiguous();
@@ -154,7 +159,10 @@ impl Backward<Flex, 3> for BatchNormBackward {
         let g = s.gradients(
             &x,
             &dy.to_contiguous(),
-            gamma.to_contiguous().storage(),
+            (
+                gamma.to_contiguous().storage(),
+                beta.to_contiguous().storage(),
+            ),
             node_x.is_some(),
         );
         if let (Some(node), Some(dx)) = (node_x, g.x) {
@@ -169,8 +177,8 @@ impl Backward<Flex, 3> for BatchNormBackward {
     }
 }
 
-impl<C: CheckpointStrategy> BatchNormTraining for Autodiff<Flex, C> {
-    fn batch_norm_training(
+impl<C: CheckpointStrategy> BatchNormReluTraining for Autodiff<Flex, C> {
+    fn batch_norm_relu_training(
         x: FloatTensor<Self>,
         gamma: FloatTensor<Self>,
         beta: FloatTensor<Self>,
@@ -179,7 +187,7 @@ impl<C: CheckpointStrategy> BatchNormTraining for Autodiff<Flex, C> {
         let nodes = [x.node(), gamma.node(), beta.node()];
         let forward =
             |x: &FloatTensor<Self>, gamma: &FloatTensor<Self>, beta: FloatTensor<Self>| {
-                <Flex as BatchNormTraining>::batch_norm_training(
+                <Flex as BatchNormReluTraining>::batch_norm_relu_training(
                     x.primitive().clone(),
                     gamma.primitive().clone(),
                     beta.into_primitive(),
@@ -193,10 +201,12 @@ impl<C: CheckpointStrategy> BatchNormTraining for Autodiff<Flex, C> {
         {
             OpsKind::Tracked(mut prep) => {
                 let (x_state, gamma_state) = (prep.checkpoint(&x), prep.checkpoint(&gamma));
+                let shift = beta.primitive().clone();
                 let (y, mean, variance) = forward(&x, &gamma, beta);
                 let state = (
                     x_state,
                     gamma_state,
+                    shift,
                     mean.clone(),
                     variance.clone(),
                     epsilon,
@@ -233,6 +243,11 @@ fn sum_of(a: &[f32], b: &[f32], f: impl Fn(f32, f32) -> f32) -> f32 {
         }
     }
     lanes.iter().sum::<f32>() + rest
+}
+
+/// max(v, 0) as Burn's ReLU: zero where `v` ≤ 0, so NaN passes.
+fn relu(v: f32) -> f32 {
+    if v <= 0.0 { 0.0 } else { v }
 }
 
 /// The planes of channel `c` in `x` `[batch, channels, plane]`.
@@ -294,18 +309,21 @@ impl Statistics {
         (1.0 / (f64::from(self.variance[c]) + self.epsilon).sqrt()) as f32
     }
 
-    /// γ (x − mean) / sqrt(variance + ε) + β, written over `x` where
-    /// nothing else holds it (in inference, where nothing needs the input
-    /// again).
+    /// The normalisation of channel `c` as x · scale + shift: (scale,
+    /// shift).
+    fn affine(&self, c: usize, gamma: &[f32], beta: &[f32]) -> (f32, f32) {
+        let scale = gamma[c] * self.inverse_std(c);
+        (scale, beta[c] - self.mean[c] * scale)
+    }
+
+    /// ReLU of γ (x − mean) / sqrt(variance + ε) + β, written over `x`
+    /// where nothing else holds it (in inference, where nothing needs the
+    /// input again).
     fn normalise(&self, x: FlexTensor, gamma: &[f32], beta: &[f32]) -> FlexTensor {
         let mut y = x.to_contiguous();
         drop(x);
         let plane = y.layout().shape().num_elements() / (y.layout().shape()[0] * self.channels);
-        let affine = |index: usize| {
-            let c = index % self.channels;
-            let scale = gamma[c] * self.inverse_std(c);
-            (scale, beta[c] - self.mean[c] * scale)
-        };
+        let affine = |index: usize| self.affine(index % self.channels, gamma, beta);
         if let Some(values) = y.try_storage_mut::<f32>() {
             values
                 .par_chunks_mut(plane)
@@ -313,7 +331,7 @@ impl Statistics {
                 .for_each(|(index, values)| {
                     let (scale, shift) = affine(index);
                     for v in values {
-                        *v = *v * scale + shift;
+                        *v = relu(*v * scale + shift);
                     }
                 });
             return y;
@@ -326,30 +344,47 @@ impl Statistics {
             .for_each(|(index, (out, x))| {
                 let (scale, shift) = affine(index);
                 for (out, x) in out.iter_mut().zip(x) {
-                    *out = x * scale + shift;
+                    *out = relu(x * scale + shift);
                 }
             });
         tensor(out, y.layout().shape().clone())
     }
 
-    /// The gradients from the output gradient `dy`: with x̂ the normalised
-    /// input and N the values per channel, dβ = Σ dy, dγ = Σ dy x̂, and
-    /// dx = γ / sqrt(variance + ε) (dy − dβ / N − x̂ dγ / N).
-    fn gradients(&self, x: &FlexTensor, dy: &FlexTensor, gamma: &[f32], input: bool) -> Grads {
+    /// The gradients from the output gradient `dy`: with g = dy where the
+    /// output is positive and 0 elsewhere (ReLU's), x̂ the normalised input
+    /// and N the values per channel, dβ = Σ g, dγ = Σ g x̂, and
+    /// dx = γ / sqrt(variance + ε) (g − dβ / N − x̂ dγ / N).
+    fn gradients(
+        &self,
+        x: &FlexTensor,
+        dy: &FlexTensor,
+        (gamma, beta): (&[f32], &[f32]),
+        input: bool,
+    ) -> Grads {
         let shape = x.layout().shape().clone();
         let (x, dy) = (x.storage::<f32>(), dy.storage::<f32>());
         let channels = self.channels;
         let plane = x.len() / (shape[0] * channels);
         let count = (x.len() / channels) as f32;
-        let (beta, gamma_grad): (Vec<f32>, Vec<f32>) = (0..channels)
+        // ReLU's gradient: dy where the output x · scale + shift is positive.
+        let passed = |x: f32, dy: f32, (scale, shift): (f32, f32)| {
+            if relu(x * scale + shift) == 0.0 {
+                0.0
+            } else {
+                dy
+            }
+        };
+        let (beta_grad, gamma_grad): (Vec<f32>, Vec<f32>) = (0..channels)
             .into_par_iter()
             .map(|c| {
                 let (mean, inverse_std) = (self.mean[c], self.inverse_std(c));
+                let affine = self.affine(c, gamma, beta);
                 let planes = |t| channel_planes(t, plane, channels, c);
-                let db: f32 = planes(dy).map(|d| sum_of(d, d, |d, _| d)).sum();
-                let dg: f32 = (planes(x).zip(planes(dy)))
-                    .map(|(x, d)| sum_of(x, d, |x, d| (x - mean) * inverse_std * d))
-                    .sum();
+                let (mut db, mut dg) = (0.0, 0.0);
+                for (x, d) in planes(x).zip(planes(dy)) {
+                    db += sum_of(x, d, |x, d| passed(x, d, affine));
+                    dg += sum_of(x, d, |x, d| (x - mean) * inverse_std * passed(x, d, affine));
+                }
                 (db, dg)
             })
             .unzip();
@@ -361,11 +396,11 @@ impl Statistics {
                 .for_each(|(index, (dx, (x, dy)))| {
                     let c = index % channels;
                     let (mean, inverse_std) = (self.mean[c], self.inverse_std(c));
-                    let scale = gamma[c] * inverse_std;
-                    let (db, dg) = (beta[c] / count, gamma_grad[c] / count);
+                    let affine = self.affine(c, gamma, beta);
+                    let (db, dg) = (beta_grad[c] / count, gamma_grad[c] / count);
                     for ((dx, x), dy) in dx.iter_mut().zip(x).zip(dy) {
                         let normalised = (x - mean) * inverse_std;
-                        *dx = scale * (dy - db - normalised * dg);
+                        *dx = affine.0 * (passed(*x, *dy, affine) - db - normalised * dg);
                     }
                 });
             tensor(dx, shape)
@@ -373,7 +408,7 @@ impl Statistics {
         Grads {
             x: dx,
             gamma: tensor(gamma_grad, [channels]),
-            beta: tensor(beta, [channels]),
+            beta: tensor(beta_grad, [channels]),
         }
     }
 }
@@ -383,14 +418,14 @@ mod tests {
     use super::*;
     use burn::module::{Module, Param};
     use burn::nn::BatchNormConfig;
-    use burn::tensor::{Device, Distribution, Tolerance};
+    use burn::tensor::{Device, Distribution, Tolerance, activation};
 
     fn tolerance() -> Tolerance<f32> {
         Tolerance::rel_abs(1e-4, 1e-4)
     }
 
-    /// Burn's BatchNorm and this one on the same input, γ and β, twice in
-    /// training (the second pass starting from the running statistics the
+    /// Burn's BatchNorm and ReLU and this one on the same input, γ and β,
+    /// twice in training (the second pass starting from the running statistics the
     /// first left): outputs, gradients of a random linear function of the
     /// output and running statistics; then in inference; to 1e-4.
     fn check(shape: [usize; 4], offset: f64) {
@@ -419,8 +454,8 @@ mod tests {
             let run = |layer: &BatchNorm, fused: bool| {
                 let x = Param::from_tensor(x.clone()).val();
                 let y = match fused {
-                    true => batch_norm_training(layer, x.clone()),
-                    false => layer.forward(x.clone()),
+                    true => batch_norm_relu_training(layer, x.clone()),
+                    false => activation::relu(layer.forward(x.clone())),
                 };
                 let grads = (y.clone() * probe.clone()).sum().backward();
                 [
@@ -451,15 +486,15 @@ mod tests {
             plain.valid(),
             random(shape.to_vec(), offset).reshape(shape).inner(),
         );
-        let expected = layer.forward(x.clone()).into_data();
+        let expected = activation::relu(layer.forward(x.clone())).into_data();
         // Here `x` is the only handle: normalised in place.
-        batch_norm_inference(&layer, x)
+        batch_norm_relu_inference(&layer, x)
             .into_data()
             .assert_approx_eq::<f32>(&expected, tolerance());
     }
 
     #[test]
-    fn training_and_inference_match_burns_batch_norm() {
+    fn training_and_inference_match_burns_batch_norm_and_relu() {
         check([3, 5, 4, 6], 0.0);
         // The encoder's first layer at 40 × 32, values far from zero.
         check([4, 32, 8, 10], 3.0);

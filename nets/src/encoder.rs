@@ -1,7 +1,7 @@
 //! The convolutional trunk both networks share in shape (not in weights).
 
 use crate::batch_conv::{self, batch_conv2d};
-use crate::batch_norm::{batch_norm_inference, batch_norm_training};
+use crate::batch_norm::{batch_norm_relu_inference, batch_norm_relu_training};
 use burn::config::Config;
 use burn::module::Module;
 use burn::nn::conv::{Conv2d, Conv2dConfig};
@@ -77,9 +77,9 @@ impl Encoder {
     /// - `image`: `[batch, 1, height, width]`
     /// - output: `[batch, features]`
     pub fn forward(&self, image: Tensor<4>) -> Tensor<2> {
-        let x = relu(norm(&self.norm1, conv(&self.conv1, image))); // [batch, 32, h/4, w/4]
-        let x = relu(norm(&self.norm2, conv(&self.conv2, x))); // [batch, 64, h/8, w/8]
-        let x = relu(norm(&self.norm3, conv(&self.conv3, x))); // [batch, 64, h/8, w/8]
+        let x = norm_relu(&self.norm1, conv(&self.conv1, image)); // [batch, 32, h/4, w/4]
+        let x = norm_relu(&self.norm2, conv(&self.conv2, x)); // [batch, 64, h/8, w/8]
+        let x = norm_relu(&self.norm3, conv(&self.conv3, x)); // [batch, 64, h/8, w/8]
         relu(self.fc.forward(x.flatten::<2>(1, 3))) // [batch, features]
     }
 }
@@ -97,14 +97,15 @@ fn conv(layer: &Conv2d, x: Tensor<4>) -> Tensor<4> {
     }
 }
 
-/// `layer` applied to `x`: on the CPU in a few passes over `x`
-/// ([`batch_norm_training`], [`batch_norm_inference`]), elsewhere by Burn.
-fn norm(layer: &BatchNorm, x: Tensor<4>) -> Tensor<4> {
+/// ReLU of `layer` applied to `x`: on the CPU in a few passes over `x`
+/// ([`batch_norm_relu_training`], [`batch_norm_relu_inference`]),
+/// elsewhere by Burn.
+fn norm_relu(layer: &BatchNorm, x: Tensor<4>) -> Tensor<4> {
     let device = x.device();
     match (batch_conv::is_cpu_backend(&device), device.is_autodiff()) {
-        (true, false) => batch_norm_inference(layer, x),
-        (true, true) if layer.training.is_enabled() => batch_norm_training(layer, x),
-        _ => layer.forward(x),
+        (true, false) => batch_norm_relu_inference(layer, x),
+        (true, true) if layer.training.is_enabled() => batch_norm_relu_training(layer, x),
+        _ => relu(layer.forward(x)),
     }
 }
 
