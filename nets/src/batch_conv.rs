@@ -508,13 +508,13 @@ fn forward(x: &FlexTensor, weight: &FlexTensor, bias: &FlexTensor, g: Geometry) 
     let weight = weight.reshape(Shape::from([g.channels_out, g.patch()]));
     let n = g.out_pixels();
     let mut out = vec![0f32; g.batch * g.channels_out * n];
-    let mut columns = Columns::default();
+    let mut matrices = Columns::default();
     for images in chunks(g) {
         // [out, images × out pixels] → [images, out, out pixels], plus the
         // bias.
         let y = burn_flex::ops::matmul::matmul(
             weight.clone(),
-            columns.of(x.storage(), g, images.clone()),
+            matrices.of(x.storage(), g, images.clone()),
         );
         let y = y.storage::<f32>();
         let columns = images.len() * n;

@@ -80,12 +80,7 @@ impl BatchNormReluInference for Flex {
         variance: FlexTensor,
         epsilon: f64,
     ) -> FlexTensor {
-        let s = Statistics {
-            channels: gamma.layout().shape()[0],
-            mean: mean.to_contiguous().storage::<f32>().to_vec(),
-            variance: variance.to_contiguous().storage::<f32>().to_vec(),
-            epsilon,
-        };
+        let s = Statistics::given(&mean, &variance, epsilon);
         s.normalise(
             x,
             gamma.to_contiguous().storage(),
@@ -95,8 +90,8 @@ impl BatchNormReluInference for Flex {
 }
 
 /// ReLU of `layer` applied to `x` in training, as Burn's
-/// [`BatchNorm::forward`] does, running statistics included; only on the CPU backend with
-/// autodiff (see [`crate::is_cpu_backend`]).
+/// [`BatchNorm::forward`] does, running statistics included; only on the
+/// CPU backend with autodiff (see [`crate::is_cpu_backend`]).
 pub fn batch_norm_relu_training(layer: &BatchNorm, x: Tensor<4>) -> Tensor<4> {
     let (y, mean, variance) = <Dispatch as BatchNormReluTraining>::batch_norm_relu_training(
         x.into_dispatch(),
@@ -150,12 +145,7 @@ impl Backward<Flex, 3> for BatchNormBackward {
         let x: FlexTensor = cp.retrieve_node_output(x);
         let gamma: FlexTensor = cp.retrieve_node_output(gamma);
         let x = x.to_contiguous();
-        let s = Statistics {
-            channels: gamma.layout().shape()[0],
-            mean: mean.to_contiguous().storage::<f32>().to_vec(),
-            variance: variance.to_contiguous().storage::<f32>().to_vec(),
-            epsilon,
-        };
+        let s = Statistics::given(&mean, &variance, epsilon);
         let g = s.gradients(
             &x,
             &dy.to_contiguous(),
@@ -277,6 +267,17 @@ struct Grads {
 }
 
 impl Statistics {
+    /// Statistics already computed, `[channels]` each.
+    fn given(mean: &FlexTensor, variance: &FlexTensor, epsilon: f64) -> Self {
+        let values = |t: &FlexTensor| t.to_contiguous().storage::<f32>().to_vec();
+        Self {
+            channels: mean.layout().shape()[0],
+            mean: values(mean),
+            variance: values(variance),
+            epsilon,
+        }
+    }
+
     /// The mean, then the variance about it (two passes, as Burn's).
     fn of(x: &FlexTensor, epsilon: f64) -> Self {
         let shape = x.layout().shape();
@@ -425,9 +426,10 @@ mod tests {
     }
 
     /// Burn's BatchNorm and ReLU and this one on the same input, γ and β,
-    /// twice in training (the second pass starting from the running statistics the
-    /// first left): outputs, gradients of a random linear function of the
-    /// output and running statistics; then in inference; to 1e-4.
+    /// twice in training (the second pass starting from the running
+    /// statistics the first left): outputs, gradients of a random linear
+    /// function of the output and running statistics; then in inference; to
+    /// 1e-4.
     fn check(shape: [usize; 4], offset: f64) {
         let device = Device::flex().autodiff();
         device.seed(5);
