@@ -247,14 +247,15 @@ impl Columns {
     /// ox) holds `x[image, c, oy·s + ky − p, ox·s + kx − p]`, zero outside.
     fn of(&mut self, x: &[f32], g: Geometry, images: Range<usize>) -> FlexTensor {
         let shape = [g.patch(), images.len() * g.out_pixels()];
+        let fresh = || tensor(vec![0f32; shape.iter().product()], shape);
         let mut cols = match self.0.take() {
             Some(cols) if cols.layout().shape().dims::<2>() == shape => cols,
-            _ => tensor(vec![0f32; shape.iter().product()], shape),
+            _ => fresh(),
         };
         match cols.try_storage_mut() {
             Some(storage) => im2col(storage, x, g, images),
             None => {
-                cols = tensor(vec![0f32; shape.iter().product()], shape);
+                cols = fresh();
                 im2col(cols.storage_mut(), x, g, images);
             }
         }

@@ -332,7 +332,7 @@ async fn learn(
         let Some((version, bytes, policy)) = &mut feeder.snapshot else {
             unreachable!("a snapshot newer than {seen} was downloaded");
         };
-        let cosines = alignment(bytes, env);
+        let cosines = alignment(policy);
         let mean = cosines.iter().sum::<f32>() / cosines.len() as f32;
         last = format!("v{version}, cosines {cosines:?}");
         if mean > 0.8 && cosines.iter().all(|&c| c > 0.5) {
@@ -347,10 +347,9 @@ async fn learn(
     }
 }
 
-/// Cosine between the actor's action and the target vector, for target
+/// Cosine between `policy`'s action and the target vector, for target
 /// vectors in eight directions with nothing else in view.
-fn alignment(snapshot: &[u8], env: &EnvConfig) -> Vec<f32> {
-    let mut policy = network(snapshot, env);
+fn alignment(policy: &mut NetworkPolicy) -> Vec<f32> {
     let observations: Vec<Observation> = (0..8)
         .map(|k| {
             let angle = k as f32 * std::f32::consts::FRAC_PI_4 + 0.3;
@@ -436,7 +435,7 @@ async fn learns_to_point_at_the_target_over_grpc() {
     );
     assert!(status.best_snapshot >= 2, "{status:?}");
     assert!(status.critic_loss.is_finite() && status.mean_q.is_finite());
-    let before = alignment(&untrained.1, &learner.env);
+    let before = alignment(&mut network(&untrained.1, &learner.env));
     assert!(
         before.iter().sum::<f32>() / 8.0 < 0.5,
         "untrained cosines {before:?}"
