@@ -1,6 +1,7 @@
 //! The convolutional trunk both networks share in shape (not in weights).
 
 use crate::batch_conv::{self, batch_conv2d};
+use crate::batch_linear::batch_linear;
 use crate::batch_norm::{batch_norm_relu_inference, batch_norm_relu_training};
 use burn::config::Config;
 use burn::module::Module;
@@ -80,7 +81,18 @@ impl Encoder {
         let x = norm_relu(&self.norm1, conv(&self.conv1, image)); // [batch, 32, h/4, w/4]
         let x = norm_relu(&self.norm2, conv(&self.conv2, x)); // [batch, 64, h/8, w/8]
         let x = norm_relu(&self.norm3, conv(&self.conv3, x)); // [batch, 64, h/8, w/8]
-        relu(self.fc.forward(x.flatten::<2>(1, 3))) // [batch, features]
+        relu(linear(&self.fc, x.flatten::<2>(1, 3))) // [batch, features]
+    }
+}
+
+/// `layer` applied to `x`: on the CPU with its weight gradient computed
+/// in one pass ([`batch_linear`]), elsewhere by Burn.
+fn linear(layer: &Linear, x: Tensor<2>) -> Tensor<2> {
+    match &layer.bias {
+        Some(bias) if batch_conv::is_cpu_backend(&x.device()) => {
+            batch_linear(x, layer.weight.val(), bias.val())
+        }
+        _ => layer.forward(x),
     }
 }
 

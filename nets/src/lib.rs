@@ -15,6 +15,7 @@
 mod actor;
 mod architecture;
 mod batch_conv;
+mod batch_linear;
 mod batch_norm;
 mod critic;
 mod encoder;
