@@ -13,7 +13,10 @@
 //!   back into the image (col2im),
 //!
 //! each product one GEMM on Burn's own matrix multiplication (transposes are
-//! views, not copies). Where the input is mostly zeros, as the rendered
+//! views, not copies). A column matrix is written whole, over a spare this
+//! thread made before where one is free, and where the whole batch fits in
+//! one (40 × 32) the backward step reuses the forward step's instead of
+//! building it again. Where the input is mostly zeros, as the rendered
 //! images are, forward and weight gradient go over its nonzeros instead
 //! ([`Nonzeros`]). It is the same convolution: the tests check it against
 //! Burn's to 1e-4, forward and gradients. Other devices (wgpu, cuda) keep
@@ -29,6 +32,7 @@ use burn::backend::{Autodiff, Backend, Dispatch, DispatchDevice, Flex, backend_e
 use burn::tensor::{Bytes, DType, Shape, Tensor};
 use burn_flex::{FlexTensor, Layout};
 use rayon::prelude::*;
+use std::cell::RefCell;
 use std::ops::Range;
 
 /// A convolution with square kernels, equal stride and padding on both
@@ -87,6 +91,7 @@ impl BatchConv for Flex {
             &bias,
             Geometry::of(&x, &weight, stride, padding),
         )
+        .0
     }
 }
 
@@ -95,17 +100,18 @@ impl BatchConv for Flex {
 struct BatchConvBackward;
 
 impl Backward<Flex, 3> for BatchConvBackward {
-    /// The checkpointed input and weight, stride and padding.
-    type State = (NodeId, NodeId, usize, usize);
+    /// The checkpointed input and weight, stride and padding, and the
+    /// forward step's column matrix of the whole batch if it kept one.
+    type State = (NodeId, NodeId, usize, usize, Option<FlexTensor>);
 
     fn backward(self, ops: Ops<Self::State, 3>, grads: &mut Gradients, cp: &mut Checkpointer) {
         let [node_x, node_weight, node_bias] = ops.parents;
         let grad: FlexTensor = grads.consume::<Flex>(&ops.node);
-        let (x, weight, stride, padding) = ops.state;
+        let (x, weight, stride, padding, whole) = ops.state;
         let x: FlexTensor = cp.retrieve_node_output(x);
         let weight: FlexTensor = cp.retrieve_node_output(weight);
         let geometry = Geometry::of(&x, &weight, stride, padding);
-        let g = backward(&x, &weight, &grad, geometry, node_x.is_some());
+        let g = backward(&x, &weight, &grad, geometry, node_x.is_some(), whole);
         if let (Some(node), Some(dx)) = (node_x, g.x) {
             grads.register::<Flex>(node.id, dx);
         }
@@ -139,15 +145,11 @@ impl<C: CheckpointStrategy> BatchConv for Autodiff<Flex, C> {
             .stateful()
         {
             OpsKind::Tracked(mut prep) => {
-                let state = (
-                    prep.checkpoint(&x),
-                    prep.checkpoint(&weight),
-                    stride,
-                    padding,
-                );
-                prep.finish(state, convolve(x, weight, bias))
+                let (x_id, weight_id) = (prep.checkpoint(&x), prep.checkpoint(&weight));
+                let (y, whole) = convolve(x, weight, bias);
+                prep.finish((x_id, weight_id, stride, padding, whole), y)
             }
-            OpsKind::UnTracked(prep) => prep.finish(convolve(x, weight, bias)),
+            OpsKind::UnTracked(prep) => prep.finish(convolve(x, weight, bias).0),
         }
     }
 }
@@ -235,54 +237,62 @@ pub(crate) fn tensor(values: Vec<f32>, shape: impl Into<Shape>) -> FlexTensor {
     )
 }
 
-/// The column matrices of one convolution's chunks of images, in one
-/// buffer while nothing else holds it: chunks of as many images have their
-/// padding in the same places, so a refill leaves those zeros as they are.
-#[derive(Default)]
-struct Columns(Option<FlexTensor>);
-
-impl Columns {
-    /// The images `images` of `x` (`[batch, in, h, w]`) as a column matrix
-    /// `[patch, images × out pixels]`: row (c, ky, kx), column (image, oy,
-    /// ox) holds `x[image, c, oy·s + ky − p, ox·s + kx − p]`, zero outside.
-    fn of(&mut self, x: &[f32], g: Geometry, images: Range<usize>) -> FlexTensor {
-        let shape = [g.patch(), images.len() * g.out_pixels()];
-        let fresh = || tensor(vec![0f32; shape.iter().product()], shape);
-        let mut cols = match self.0.take() {
-            Some(cols) if cols.layout().shape().dims::<2>() == shape => cols,
-            _ => fresh(),
-        };
-        match cols.try_storage_mut() {
-            Some(storage) => im2col(storage, x, g, images),
-            None => {
-                cols = fresh();
-                im2col(cols.storage_mut(), x, g, images);
-            }
-        }
-        self.0 = Some(cols.clone());
-        cols
-    }
+thread_local! {
+    /// Column matrices this thread made, kept for reuse: a TD3 update
+    /// builds dozens of the same few shapes.
+    static SPARE_COLUMNS: RefCell<Vec<FlexTensor>> = const { RefCell::new(Vec::new()) };
 }
 
-/// Writes the column matrix of `images` (see [`Columns::of`]) into `cols`,
-/// except for its padding, which stays as it is (zero).
-fn im2col(cols: &mut [f32], x: &[f32], g: Geometry, images: Range<usize>) {
+/// Column matrices kept per thread (two shapes per encoder, in forward and
+/// backward passes of several networks).
+const SPARES: usize = 8;
+
+/// The images `images` of `x` (`[batch, in, h, w]`) as a column matrix
+/// `[patch, images × out pixels]`: row (c, ky, kx), column (image, oy, ox)
+/// holds `x[image, c, oy·s + ky − p, ox·s + kx − p]`, zero outside. It is
+/// written over a matrix of the same shape that this thread made before
+/// and nothing holds any more where there is one, instead of a fresh one.
+fn column_matrix(x: &[f32], g: Geometry, taps: &[Tap], images: Range<usize>) -> FlexTensor {
+    let shape = [g.patch(), images.len() * g.out_pixels()];
+    let mut cols = SPARE_COLUMNS
+        .with_borrow_mut(|spare| {
+            let free = spare.iter_mut().position(|cols| {
+                cols.layout().shape().dims::<2>() == shape
+                    && cols.try_storage_mut::<f32>().is_some()
+            })?;
+            Some(spare.swap_remove(free))
+        })
+        .unwrap_or_else(|| tensor(vec![0f32; shape.iter().product()], shape));
+    im2col(cols.storage_mut(), x, g, taps, images);
+    SPARE_COLUMNS.with_borrow_mut(|spare| {
+        if spare.len() == SPARES {
+            spare.remove(0);
+        }
+        spare.push(cols.clone());
+    });
+    cols
+}
+
+/// Writes the column matrix of `images` (see [`column_matrix`]) into `cols`,
+/// every element of it.
+fn im2col(cols: &mut [f32], x: &[f32], g: Geometry, taps: &[Tap], images: Range<usize>) {
     let (k, plane, n) = (g.kernel, g.height * g.width, g.out_pixels());
     let columns = images.len() * n;
     cols.par_chunks_mut(columns)
         .enumerate()
         .for_each(|(row, col)| {
             let (c, ky, kx) = (row / (k * k), row / k % k, row % k);
-            let (ys, xs) = (
-                g.inside(ky, g.height, g.out_height),
-                g.inside(kx, g.width, g.out_width),
-            );
+            let tap = &taps[row % (k * k)];
             for (image, out) in images.clone().zip(col.chunks_exact_mut(n)) {
                 let channel = &x[(image * g.channels_in + c) * plane..][..plane];
                 if g.keeps_size() {
+                    if !tap.covers(g) {
+                        out.fill(0.0);
+                    }
                     // Output row oy is input row oy + ky − p shifted by kx −
                     // p: the rows ys are one block of the plane, shifted,
                     // whose columns outside xs are then zeroed again.
+                    let (ys, xs) = (tap.ys.clone(), tap.xs.clone());
                     let shift = (ky * g.width + kx) as isize - (g.padding * (g.width + 1)) as isize;
                     let (start, end) = (ys.start * g.width, ys.end * g.width);
                     let skip = (-(start as isize + shift)).max(0) as usize;
@@ -296,22 +306,68 @@ fn im2col(cols: &mut [f32], x: &[f32], g: Geometry, images: Range<usize>) {
                     }
                     continue;
                 }
-                for oy in ys.clone() {
-                    let line = &channel[(oy * g.stride + ky - g.padding) * g.width..][..g.width];
-                    let out = &mut out[oy * g.out_width..][xs.clone()];
-                    let first = xs.start * g.stride + kx - g.padding;
-                    for (j, v) in out.iter_mut().enumerate() {
-                        *v = line[first + j * g.stride];
-                    }
+                for (v, &source) in out.iter_mut().zip(&tap.sources) {
+                    *v = channel.get(source as usize).copied().unwrap_or(0.0);
                 }
             }
         });
 }
 
+/// Where one kernel tap (ky, kx) reads: the output rows `ys` and columns
+/// `xs` whose input pixel lies inside the image, and that input pixel's
+/// index in its plane for the first of them; and, unless the convolution
+/// keeps the size, each output pixel's input index (`u32::MAX` in the
+/// padding).
+struct Tap {
+    ys: Range<usize>,
+    xs: Range<usize>,
+    first: usize,
+    sources: Vec<u32>,
+}
+
+impl Tap {
+    /// Every tap of `g`'s kernel, row by row.
+    fn all(g: Geometry) -> Vec<Tap> {
+        let k = g.kernel;
+        (0..k * k)
+            .map(|tap| {
+                let (ky, kx) = (tap / k, tap % k);
+                let (ys, xs) = (
+                    g.inside(ky, g.height, g.out_height),
+                    g.inside(kx, g.width, g.out_width),
+                );
+                let first = (ys.start * g.stride + ky).saturating_sub(g.padding) * g.width
+                    + (xs.start * g.stride + kx).saturating_sub(g.padding);
+                let mut sources = Vec::new();
+                if !g.keeps_size() {
+                    sources = vec![u32::MAX; g.out_pixels()];
+                    for (oy, row) in ys.clone().zip((first..).step_by(g.stride * g.width)) {
+                        let line = &mut sources[oy * g.out_width..][xs.clone()];
+                        for (source, x) in line.iter_mut().zip((row..).step_by(g.stride)) {
+                            *source = x as u32;
+                        }
+                    }
+                }
+                Tap {
+                    ys,
+                    xs,
+                    first,
+                    sources,
+                }
+            })
+            .collect()
+    }
+
+    /// Whether every output pixel's input lies inside the image.
+    fn covers(&self, g: Geometry) -> bool {
+        self.ys.len() == g.out_height && self.xs.len() == g.out_width
+    }
+}
+
 /// Adds the gradient of a column matrix of `images` back into those
 /// images' planes of `dx` (`[batch, in, h, w]`): the transpose of
 /// [`im2col`].
-fn col2im(dx: &mut [f32], dcols: &[f32], g: Geometry, images: Range<usize>) {
+fn col2im(dx: &mut [f32], dcols: &[f32], g: Geometry, taps: &[Tap], images: Range<usize>) {
     let (k, plane, n) = (g.kernel, g.height * g.width, g.out_pixels());
     let columns = images.len() * n;
     let planes = &mut dx[images.start * g.channels_in * plane..images.end * g.channels_in * plane];
@@ -320,21 +376,16 @@ fn col2im(dx: &mut [f32], dcols: &[f32], g: Geometry, images: Range<usize>) {
         .enumerate()
         .for_each(|(index, channel)| {
             let (image, c) = (index / g.channels_in, index % g.channels_in);
-            for (ky, kx) in (0..k).flat_map(|ky| (0..k).map(move |kx| (ky, kx))) {
-                let row = (c * k + ky) * k + kx;
-                let d = &dcols[row * columns + image * n..][..n];
-                let xs = g.inside(kx, g.width, g.out_width);
-                for oy in g.inside(ky, g.height, g.out_height) {
-                    let line =
-                        &mut channel[(oy * g.stride + ky - g.padding) * g.width..][..g.width];
-                    let first = xs.start * g.stride + kx - g.padding;
-                    let d = &d[oy * g.out_width..][xs.clone()];
+            for (tap, t) in taps.iter().enumerate() {
+                let d = &dcols[(c * k * k + tap) * columns + image * n..][..n];
+                for (oy, first) in t.ys.clone().zip((t.first..).step_by(g.stride * g.width)) {
+                    let d = &d[oy * g.out_width..][t.xs.clone()];
                     if g.stride == 1 {
-                        for (v, d) in line[first..][..d.len()].iter_mut().zip(d) {
+                        for (v, d) in channel[first..][..d.len()].iter_mut().zip(d) {
                             *v += d;
                         }
                     } else {
-                        for (v, d) in line[first..].iter_mut().step_by(g.stride).zip(d) {
+                        for (v, d) in channel[first..].iter_mut().step_by(g.stride).zip(d) {
                             *v += d;
                         }
                     }
@@ -499,24 +550,32 @@ impl Nonzeros {
     }
 }
 
-fn forward(x: &FlexTensor, weight: &FlexTensor, bias: &FlexTensor, g: Geometry) -> FlexTensor {
+/// The convolution, and the column matrix of the whole batch where it was
+/// made in one piece (see [`Geometry::chunk`]), for the backward step.
+fn forward(
+    x: &FlexTensor,
+    weight: &FlexTensor,
+    bias: &FlexTensor,
+    g: Geometry,
+) -> (FlexTensor, Option<FlexTensor>) {
     let x = x.to_contiguous();
     let bias = bias.to_contiguous();
     let bias = bias.storage::<f32>();
     if let Some(nonzeros) = Nonzeros::of(x.storage(), g) {
-        return nonzeros.forward(&weight.to_contiguous(), bias, g);
+        return (nonzeros.forward(&weight.to_contiguous(), bias, g), None);
     }
     let weight = weight.reshape(Shape::from([g.channels_out, g.patch()]));
     let n = g.out_pixels();
     let mut out = vec![0f32; g.batch * g.channels_out * n];
-    let mut matrices = Columns::default();
+    let (taps, mut whole) = (Tap::all(g), None);
     for images in chunks(g) {
         // [out, images × out pixels] → [images, out, out pixels], plus the
         // bias.
-        let y = burn_flex::ops::matmul::matmul(
-            weight.clone(),
-            matrices.of(x.storage(), g, images.clone()),
-        );
+        let cols = column_matrix(x.storage(), g, &taps, images.clone());
+        if images.len() == g.batch {
+            whole = Some(cols.clone());
+        }
+        let y = burn_flex::ops::matmul::matmul(weight.clone(), cols);
         let y = y.storage::<f32>();
         let columns = images.len() * n;
         out[images.start * g.channels_out * n..images.end * g.channels_out * n]
@@ -530,7 +589,10 @@ fn forward(x: &FlexTensor, weight: &FlexTensor, bias: &FlexTensor, g: Geometry) 
                 }
             });
     }
-    tensor(out, [g.batch, g.channels_out, g.out_height, g.out_width])
+    (
+        tensor(out, [g.batch, g.channels_out, g.out_height, g.out_width]),
+        whole,
+    )
 }
 
 /// The gradients of one convolution.
@@ -540,12 +602,15 @@ struct Grads {
     bias: FlexTensor,
 }
 
+/// The gradients from the output gradient `grad`; `whole` is the forward
+/// step's column matrix of the whole batch, if it kept one.
 fn backward(
     x: &FlexTensor,
     weight: &FlexTensor,
     grad: &FlexTensor,
     g: Geometry,
     input_grad: bool,
+    mut whole: Option<FlexTensor>,
 ) -> Grads {
     let (x, grad) = (x.to_contiguous(), grad.to_contiguous());
     let dy = grad.storage::<f32>();
@@ -571,7 +636,7 @@ fn backward(
     }
     let mut dweight = vec![0f32; g.channels_out * g.patch()];
     let mut dx = input_grad.then(|| vec![0f32; g.batch * g.channels_in * g.height * g.width]);
-    let mut matrices = Columns::default();
+    let taps = Tap::all(g);
     for images in chunks(g) {
         // dy of these images `[images, out, out pixels]` → `[out, images ×
         // out pixels]`.
@@ -588,14 +653,17 @@ fn backward(
             *db += row.iter().sum::<f32>();
         }
         let dyt = tensor(dyt, [g.channels_out, columns]);
-        let cols = matrices.of(x.storage(), g, images.clone());
+        let cols = match whole.take() {
+            Some(cols) if images.len() == g.batch => cols,
+            _ => column_matrix(x.storage(), g, &taps, images.clone()),
+        };
         let dw = burn_flex::ops::matmul::matmul(dyt.clone(), cols.transpose(0, 1));
         for (a, d) in dweight.iter_mut().zip(dw.storage::<f32>()) {
             *a += d;
         }
         if let Some(dx) = dx.as_mut() {
             let dcols = burn_flex::ops::matmul::matmul(weight_t.clone(), dyt);
-            col2im(dx, dcols.storage(), g, images);
+            col2im(dx, dcols.storage(), g, &taps, images);
         }
     }
     Grads {
@@ -717,6 +785,20 @@ mod tests {
         // Strided with padding, 400: chunks of 5, 5 and 2 images, the
         // second refilling the first's matrix.
         check(Input::Dense, 12, [2, 3], [40, 40], 4, 2, 1);
+    }
+
+    #[test]
+    fn a_column_matrix_reused_from_a_spare_is_written_everywhere() {
+        // Spares of the shapes the second and third layers' column
+        // matrices take at 8 × 10 in batches of 3, full of NaN: every
+        // element the convolutions read must be written over, padding
+        // included.
+        for shape in [[32 * 4 * 4, 3 * 4 * 5], [64 * 3 * 3, 3 * 4 * 5]] {
+            let poison = vec![f32::NAN; shape[0] * shape[1]];
+            SPARE_COLUMNS.with_borrow_mut(|spare| spare.push(tensor(poison, shape)));
+        }
+        check(Input::Dense, 3, [32, 64], [8, 10], 4, 2, 1);
+        check(Input::Dense, 3, [64, 64], [4, 5], 3, 1, 1);
     }
 
     #[test]
