@@ -20,7 +20,7 @@ use serde::{Deserialize, Serialize};
 use sha2::{Digest, Sha256};
 use std::collections::{BTreeMap, BTreeSet};
 use std::io::{self, Read, Write};
-use std::ops::Range;
+use std::ops::{Deref, Range};
 use std::path::{Path, PathBuf};
 use tweezer_nets::Architecture;
 
@@ -141,12 +141,17 @@ impl Checkpoints {
         })
     }
 
+    /// The directory.
+    pub fn dir(&self) -> &Path {
+        &self.dir
+    }
+
     /// Writes a checkpoint of `header` and `parts`, then deletes the oldest
     /// beyond `keep`. Returns its path.
-    pub fn write(
+    pub fn write<P: Deref<Target = [u8]>>(
         &self,
         mut header: CheckpointHeader,
-        parts: &[(&str, Vec<u8>)],
+        parts: &[(&str, P)],
     ) -> Result<PathBuf, CheckpointError> {
         header.parts = parts
             .iter()

@@ -1,6 +1,7 @@
 //! The learner's config file: an `[env]` table and a `[learner]` table,
 //! every field defaulting to the values of `docs/spec.md`.
 
+use crate::divergence::Rollback;
 use crate::limiter::LimiterConfig;
 use crate::replay::ReplayConfig;
 use crate::td3::Td3Config;
@@ -77,6 +78,8 @@ pub struct LearnerConfig {
     pub snapshots: SnapshotConfig,
     /// Checkpoints.
     pub checkpoints: CheckpointConfig,
+    /// What a diverged update rolls back to.
+    pub rollback: Rollback,
     /// Updates between two lines of the metrics file.
     pub metrics_every_updates: u64,
     /// Largest step batch the gRPC service decodes, in bytes; actors learn
@@ -106,6 +109,7 @@ impl Default for LearnerConfig {
             limiter: LimiterConfig::default(),
             snapshots: SnapshotConfig::default(),
             checkpoints: CheckpointConfig::default(),
+            rollback: Rollback::Auto,
             metrics_every_updates: 100,
             max_message_bytes: 16 << 20,
         }

@@ -553,10 +553,16 @@ fn adam(config: &Td3Config) -> ModuleOptimizer {
 }
 
 impl<N: Networks> Td3<N> {
+    /// Bytes the networks, their targets and Adam's two moments take.
+    pub fn state_bytes(&self) -> usize {
+        let parameters = self.actor.num_params() + self.critics.num_params();
+        4 * size_of::<f32>() * parameters
+    }
+
     /// The networks, targets and optimiser states as named burnpack byte
     /// buffers, for a checkpoint.
-    pub fn save_state(&self) -> Result<Vec<(&'static str, Vec<u8>)>, RecordError> {
-        let module = |record: ModuleRecord| record.into_bytes().map(|b| b.to_vec());
+    pub fn save_state(&self) -> Result<Vec<(&'static str, Bytes)>, RecordError> {
+        let module = |record: ModuleRecord| record.into_bytes();
         Ok(vec![
             ("actor", module(self.actor.clone().into_record())?),
             ("critics", module(self.critics.clone().into_record())?),
@@ -568,8 +574,8 @@ impl<N: Networks> Td3<N> {
                 "critics_target",
                 module(self.critics_target.clone().into_record())?,
             ),
-            ("actor_optim", self.actor_optim.into_bytes()?.to_vec()),
-            ("critic_optim", self.critic_optim.into_bytes()?.to_vec()),
+            ("actor_optim", self.actor_optim.into_bytes()?),
+            ("critic_optim", self.critic_optim.into_bytes()?),
         ])
     }
 

@@ -4,13 +4,13 @@
 
 use crate::checkpoint::{CheckpointHeader, Checkpoints, Loaded};
 use crate::config::LearnerFile;
-use crate::divergence::{DivergenceGuard, Verdict};
+use crate::divergence::{DivergenceGuard, Verdict, has_checkpoint_for};
 use crate::learner_state::LearnerState;
 use crate::limiter::limiter_state_name;
 use crate::minibatch::minibatch_tensors;
 use crate::td3::{Td3, UpdateStats};
 use anyhow::{Context, bail};
-use burn::tensor::Device;
+use burn::tensor::{Bytes, Device};
 use serde::Serialize;
 use std::path::PathBuf;
 use std::sync::Arc;
@@ -120,6 +120,9 @@ struct Trainer<N: Networks> {
     sums: Sums,
     mark: RateMark,
     last_checkpoint: Instant,
+    /// A diverged update could not be rolled back: the networks are not
+    /// finite, and no checkpoint or snapshot is written of them.
+    poisoned: bool,
 }
 
 impl<N: Networks> Training for Trainer<N> {
@@ -178,7 +181,7 @@ impl<N: Networks> Trainer<N> {
                 steps_inserted: shared.steps_inserted(),
                 updates: td3.updates(),
             },
-            guard: DivergenceGuard::new(&td3),
+            guard: DivergenceGuard::new(config.rollback, &td3, &checkpoints),
             shared,
             td3,
             device,
@@ -187,12 +190,19 @@ impl<N: Networks> Trainer<N> {
             checkpoints,
             sums: Sums::default(),
             last_checkpoint: Instant::now(),
+            poisoned: false,
         })
     }
 
     fn train(&mut self) -> anyhow::Result<()> {
         let config = self.file.learner.clone();
         let every_checkpoint = Duration::from_secs_f64(config.checkpoints.every_seconds);
+        if config.rollback.keeps_checkpoints(&self.td3)
+            && !has_checkpoint_for(&self.checkpoints, &self.td3)
+        {
+            // Something for a diverged update to roll back to.
+            self.checkpoint()?;
+        }
         while !self.shared.stopping() {
             if self.shared.take_checkpoint_request() {
                 self.checkpoint()?;
@@ -238,13 +248,9 @@ impl<N: Networks> Trainer<N> {
             limiter.updated();
         }
         let diverged_at = self.td3.updates();
-        let diverged = match self.guard.check(&mut self.td3, &stats) {
-            Verdict::Finite => None,
-            Verdict::RolledBack { lost } => Some((lost, false)),
-            Verdict::GiveUp { lost } => Some((lost, true)),
-        };
-        if let Some((lost, give_up)) = diverged {
-            self.diverged(diverged_at, &stats, lost, give_up);
+        let verdict = self.guard.check(&mut self.td3, &stats);
+        if verdict != Verdict::Finite {
+            self.diverged(diverged_at, &stats, verdict);
             return Ok(false);
         }
         let s = &mut self.sums;
@@ -263,35 +269,55 @@ impl<N: Networks> Trainer<N> {
     }
 
     /// Reports an update that diverged (the networks are rolled back
-    /// already), and pauses learning when rolling back did not help.
-    fn diverged(&mut self, at: u64, stats: &UpdateStats, lost: u64, give_up: bool) {
+    /// already), and pauses learning when rolling back did not help or
+    /// could not be done.
+    fn diverged(&mut self, at: u64, stats: &UpdateStats, verdict: Verdict) {
         {
             let mut training = self.shared.training();
             training.updates = self.td3.updates();
             training.diverged_updates += 1;
         }
-        tracing::warn!(
-            update = at,
-            critic_loss = stats.critic_loss,
-            mean_q = stats.mean_q,
-            rolled_back_to = self.td3.updates(),
-            lost,
-            "an update diverged: the networks are rolled back and the batch dropped"
-        );
-        if give_up {
-            self.shared.set_paused(true);
+        let (lost, paused) = match &verdict {
+            Verdict::Finite => return,
+            Verdict::RolledBack { lost } => (Some(*lost), false),
+            Verdict::GiveUp { lost } => (Some(*lost), true),
+            Verdict::Unrestorable { .. } => (None, true),
+        };
+        if let Verdict::Unrestorable { reason } = &verdict {
+            self.poisoned = true;
+            tracing::error!(
+                update = at,
+                critic_loss = stats.critic_loss,
+                mean_q = stats.mean_q,
+                %reason,
+                "an update diverged and no good state could be read back: learning is paused, and no checkpoint is written of these networks; restart the learner from a good checkpoint"
+            );
+        } else {
+            tracing::warn!(
+                update = at,
+                critic_loss = stats.critic_loss,
+                mean_q = stats.mean_q,
+                rolled_back_to = self.td3.updates(),
+                lost,
+                "an update diverged: the networks are rolled back and the batch dropped"
+            );
+        }
+        if let Verdict::GiveUp { .. } = verdict {
             tracing::error!(
                 rollbacks = crate::divergence::MAX_ROLLBACKS,
                 updates = self.td3.updates(),
                 "training keeps diverging after rollbacks: learning is paused with the last good networks; check the TD3 settings (learning rates, reward_scale), then ResumeLearning"
             );
         }
+        if paused {
+            self.shared.set_paused(true);
+        }
         #[derive(Serialize)]
         struct DivergenceLine {
             update: u64,
             critic_loss: f64,
             mean_q: f64,
-            rolled_back_to: u64,
+            rolled_back_to: Option<u64>,
             paused: bool,
         }
         self.shared.run_log().write(
@@ -300,8 +326,8 @@ impl<N: Networks> Trainer<N> {
                 update: at,
                 critic_loss: stats.critic_loss,
                 mean_q: stats.mean_q,
-                rolled_back_to: self.td3.updates(),
-                paused: give_up,
+                rolled_back_to: lost.map(|_| self.td3.updates()),
+                paused,
             },
         );
     }
@@ -410,9 +436,14 @@ impl<N: Networks> Trainer<N> {
         Ok(())
     }
 
-    /// Writes a checkpoint of everything training needs to go on.
-    fn checkpoint(&mut self) -> anyhow::Result<PathBuf> {
+    /// Writes a checkpoint of everything training needs to go on, unless
+    /// the networks are poisoned.
+    fn checkpoint(&mut self) -> anyhow::Result<Option<PathBuf>> {
         let _span = tracing::info_span!("checkpoint").entered();
+        if self.poisoned {
+            tracing::warn!("no checkpoint written: the networks diverged and were not restored");
+            return Ok(None);
+        }
         let started = Instant::now();
         let captured = self.shared.capture(self.file.learner.checkpoints.replay);
         let header = CheckpointHeader {
@@ -437,7 +468,7 @@ impl<N: Networks> Trainer<N> {
         };
         let mut parts = self.td3.save_state()?;
         if let Some(replay) = captured.replay {
-            parts.push(("replay", replay));
+            parts.push(("replay", Bytes::from_bytes_vec(replay)));
         }
         let path = self.checkpoints.write(header, &parts)?;
         // The snapshots the kept checkpoints need stay on disk until no
@@ -465,6 +496,6 @@ impl<N: Networks> Trainer<N> {
                 seconds,
             },
         );
-        Ok(path)
+        Ok(Some(path))
     }
 }

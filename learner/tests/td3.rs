@@ -5,7 +5,7 @@ mod agreement;
 use agreement::assert_same_update;
 use burn::module::{Module, ModuleVisitor, Param};
 use burn::nn::{Linear, LinearConfig};
-use burn::tensor::{Device, Distribution, Tensor, TensorData};
+use burn::tensor::{Bytes, Device, Distribution, Tensor, TensorData};
 use tweezer_gym::{EnvConfig, ImageConfig, Renderer, SplitMix64};
 use tweezer_learner::td3::{
     Minibatch, Td3, Td3Config, smoothed_target_action, soft_update, td_target,
@@ -195,49 +195,86 @@ fn bad_hyper_parameters_are_named() {
     }
 }
 
+/// A batch of small random images whose rewards are all `reward`.
+fn batch_rewarded(reward: f32, device: &Device) -> Minibatch<Tensor<4>> {
+    let image = || Tensor::<4>::random([4, 1, 16, 20], Distribution::Bernoulli(0.1), device);
+    let pair = || Tensor::<2>::random([4, 2], Distribution::Uniform(-1.0, 1.0), device);
+    Minibatch {
+        input: image(),
+        vector: pair(),
+        action: pair(),
+        reward: Tensor::<2>::full([4, 1], reward, device),
+        terminated: Tensor::<2>::zeros([4, 1], device),
+        next_input: image(),
+        next_vector: pair(),
+    }
+}
+
+/// An update whose critic loss is infinite (a reward whose square
+/// overflows f32), judged by `guard`.
+fn poisoned(
+    td3: &mut Td3<PaperNetworks>,
+    guard: &mut tweezer_learner::divergence::DivergenceGuard<PaperNetworks>,
+) -> tweezer_learner::divergence::Verdict {
+    let stats = td3.update(batch_rewarded(1e38, &td3_device()));
+    assert!(!stats.critic_loss.is_finite());
+    guard.check(td3, &stats)
+}
+
+fn td3_device() -> Device {
+    Device::flex().autodiff()
+}
+
+/// Asserts that `td3` holds the state of `saved`'s copy: the same
+/// networks and targets, BatchNorm running statistics included, and the
+/// same updates from there without smoothing noise (the same Adam moments;
+/// their records' bytes follow a hash map's order).
+fn assert_same_state(td3: &Td3<PaperNetworks>, saved: &(std::path::PathBuf, Td3<PaperNetworks>)) {
+    let networks = |td3: &Td3<PaperNetworks>| state(td3).into_iter().take(4).collect::<Vec<_>>();
+    let (mut restored, mut copy) = (td3.clone(), saved.1.clone());
+    assert!(
+        networks(&restored) == networks(&copy),
+        "not the state of {}",
+        saved.0.display()
+    );
+    let batch = batch_rewarded(1.0, &td3_device());
+    for td3 in [&mut restored, &mut copy] {
+        td3.update(batch.clone());
+        td3.update(batch.clone());
+    }
+    assert!(
+        networks(&restored) == networks(&copy),
+        "other Adam moments than {}",
+        saved.0.display()
+    );
+}
+
+/// Everything a checkpoint holds, BatchNorm running statistics and Adam's
+/// moments included.
+fn state(td3: &Td3<PaperNetworks>) -> Vec<(&'static str, Bytes)> {
+    td3.save_state().unwrap()
+}
+
 #[test]
 fn a_diverged_update_rolls_back_to_the_last_good_networks_and_repeated_ones_give_up() {
-    use tweezer_learner::divergence::{DivergenceGuard, GOOD_RUN, MAX_ROLLBACKS, Verdict};
-    let device = Device::flex().autodiff();
-    let (h, w) = (16, 20);
-    let mut td3 = Td3::new(Td3Config::default(), cnn(h, w), &device).unwrap();
-    let mut guard = DivergenceGuard::new(&td3);
-    let batch = |reward: f32| {
-        let image = || {
-            Tensor::<4>::random(
-                [4, 1, h as usize, w as usize],
-                Distribution::Bernoulli(0.1),
-                &device,
-            )
-        };
-        let pair = || Tensor::<2>::random([4, 2], Distribution::Uniform(-1.0, 1.0), &device);
-        Minibatch {
-            input: image(),
-            vector: pair(),
-            action: pair(),
-            reward: Tensor::<2>::full([4, 1], reward, &device),
-            terminated: Tensor::<2>::zeros([4, 1], &device),
-            next_input: image(),
-            next_vector: pair(),
-        }
+    use tweezer_learner::divergence::{
+        DivergenceGuard, GOOD_RUN, MAX_ROLLBACKS, Rollback, Verdict,
     };
-    let probe = batch(0.0);
+    let device = td3_device();
+    let mut td3 = Td3::new(Td3Config::default(), cnn(16, 20), &device).unwrap();
+    assert!(
+        !Rollback::Auto.keeps_checkpoints(&td3),
+        "small networks keep copies"
+    );
+    let mut guard = DivergenceGuard::with_copies(&td3);
+    let probe = batch_rewarded(0.0, &device);
     let act = |td3: &Td3<PaperNetworks>| {
         values(
             td3.policy()
                 .forward(probe.input.clone().valid(), probe.vector.clone().valid()),
         )
     };
-    // A reward whose square overflows f32: the critic loss is infinite.
-    let poisoned = |td3: &mut Td3<PaperNetworks>, guard: &mut DivergenceGuard<PaperNetworks>| {
-        let stats = td3.update(batch(1e38));
-        assert!(!stats.critic_loss.is_finite());
-        guard.check(td3, &stats)
-    };
 
-    // Everything a checkpoint holds, BatchNorm running statistics and
-    // Adam's moments included, comes back as it was.
-    let state = |td3: &Td3<PaperNetworks>| td3.save_state().unwrap();
     let (fresh, fresh_state) = (act(&td3), state(&td3));
     assert_eq!(
         poisoned(&mut td3, &mut guard),
@@ -247,7 +284,7 @@ fn a_diverged_update_rolls_back_to_the_last_good_networks_and_repeated_ones_give
     assert!(state(&td3) == fresh_state, "the rollback left state behind");
 
     for _ in 0..GOOD_RUN {
-        let stats = td3.update(batch(1.0));
+        let stats = td3.update(batch_rewarded(1.0, &device));
         assert_eq!(guard.check(&mut td3, &stats), Verdict::Finite);
     }
     let (trained, trained_state) = (act(&td3), state(&td3));
@@ -265,6 +302,88 @@ fn a_diverged_update_rolls_back_to_the_last_good_networks_and_repeated_ones_give
     }
     assert_eq!(poisoned(&mut td3, &mut guard), Verdict::GiveUp { lost: 1 });
     assert_eq!(act(&td3), trained);
+}
+
+#[test]
+fn a_diverged_update_rolls_back_to_the_newest_checkpoint_then_to_older_ones() {
+    use tweezer_learner::checkpoint::{CheckpointHeader, Checkpoints};
+    use tweezer_learner::divergence::{DivergenceGuard, MAX_ROLLBACKS, Verdict};
+    use tweezer_nets::Architecture;
+    let device = td3_device();
+    let dir = tempfile::tempdir().unwrap();
+    let checkpoints = Checkpoints::open(dir.path(), 10).unwrap();
+    let save = |td3: &Td3<PaperNetworks>, architecture: Architecture| {
+        let header = CheckpointHeader {
+            updates: td3.updates(),
+            architecture: Some(architecture),
+            ..CheckpointHeader::default()
+        };
+        checkpoints.write(header, &state(td3)).unwrap()
+    };
+    let train = |td3: &mut Td3<PaperNetworks>, updates: usize| {
+        for _ in 0..updates {
+            assert!(
+                td3.update(batch_rewarded(1.0, &device))
+                    .critic_loss
+                    .is_finite()
+            );
+        }
+    };
+
+    // Nothing to roll back to: said, not hidden.
+    let mut td3 = Td3::new(Td3Config::default(), cnn(16, 20), &device).unwrap();
+    let mut guard = DivergenceGuard::with_checkpoints(checkpoints.clone());
+    match poisoned(&mut td3, &mut guard) {
+        Verdict::Unrestorable { reason } => {
+            assert!(reason.contains("no checkpoint"), "{reason}")
+        }
+        other => panic!("{other:?}"),
+    }
+
+    let mut td3 = Td3::new(noiseless(), cnn(16, 20), &device).unwrap();
+    let mut guard = DivergenceGuard::with_checkpoints(checkpoints.clone());
+    let architecture = td3.networks().architecture();
+    let first = (save(&td3, architecture), td3.clone());
+    train(&mut td3, 10);
+    let second = (save(&td3, architecture), td3.clone());
+    train(&mut td3, 2);
+    // Newer, but of other networks: passed over.
+    let other = save(
+        &td3,
+        Architecture::Paper {
+            height: 8,
+            width: 8,
+        },
+    );
+    train(&mut td3, 3);
+
+    assert_eq!(
+        poisoned(&mut td3, &mut guard),
+        Verdict::RolledBack { lost: 6 }
+    );
+    assert_eq!(td3.updates(), 10);
+    assert_same_state(&td3, &second);
+    assert!(other.exists());
+
+    // Diverging again before a good run goes one checkpoint further back,
+    // and the one that led to it is deleted.
+    train(&mut td3, 4);
+    assert_eq!(
+        poisoned(&mut td3, &mut guard),
+        Verdict::RolledBack { lost: 15 }
+    );
+    assert_eq!(td3.updates(), 0);
+    assert_same_state(&td3, &first);
+    assert!(!second.0.exists() && first.0.exists());
+
+    for _ in 3..MAX_ROLLBACKS {
+        assert_eq!(
+            poisoned(&mut td3, &mut guard),
+            Verdict::RolledBack { lost: 1 }
+        );
+    }
+    assert_eq!(poisoned(&mut td3, &mut guard), Verdict::GiveUp { lost: 1 });
+    assert_same_state(&td3, &first);
 }
 
 #[test]

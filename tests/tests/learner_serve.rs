@@ -681,14 +681,43 @@ async fn a_sigkill_after_more_snapshots_than_kept_since_the_checkpoint_leaves_th
 
 #[tokio::test(flavor = "multi_thread")]
 async fn updates_that_diverge_are_rolled_back_then_learning_pauses_and_the_learner_keeps_serving() {
+    // The tiny networks' state is small: the learner keeps a copy of it.
+    let (_dir, run, log) = diverge_until_paused(None).await;
+    assert_eq!(checkpoints(&run).len(), 1, "{log}");
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn updates_that_diverge_roll_back_to_a_checkpoint_where_the_config_says_so() {
+    let (_dir, run, log) = diverge_until_paused(Some("checkpoint")).await;
+    // The one written before training, to roll back to, and the last.
+    let written = checkpoints(&run);
+    assert_eq!(written.len(), 2, "{log}");
+    assert!(
+        written[0]
+            .file_name()
+            .unwrap()
+            .to_str()
+            .unwrap()
+            .starts_with("ckpt-000000000000-000000000000."),
+        "{written:?}"
+    );
+    assert!(log.contains("rolled_back_to=0"), "{log}");
+}
+
+/// A learner whose every update diverges (rewards scaled past f32's
+/// range), fed until it pauses, with `learner.rollback` set when given;
+/// stopped once it is seen to serve still. Returns its directory, its run
+/// directory and its log.
+async fn diverge_until_paused(rollback: Option<&str>) -> (tempfile::TempDir, PathBuf, String) {
     let (dir, run, config) = run_dir();
-    // Rewards scaled past f32's range: every critic loss is infinite.
-    let tiny = std::fs::read_to_string(&config).unwrap();
-    std::fs::write(
-        &config,
-        tiny.replace("reward_scale = 0.1", "reward_scale = 1e38"),
-    )
-    .unwrap();
+    let mut tiny = TINY.replace("reward_scale = 0.1", "reward_scale = 1e38");
+    if let Some(rollback) = rollback {
+        tiny = tiny.replace(
+            "[learner]\n",
+            &format!("[learner]\nrollback = \"{rollback}\"\n"),
+        );
+    }
+    std::fs::write(&config, tiny).unwrap();
     let learner = Learner::fresh(dir.path(), &config, &run);
     let paused = feed_until(&learner, "actor-0", |s| s.paused).await;
     assert!(paused.diverged_updates >= 5, "{paused:?}");
@@ -706,9 +735,9 @@ async fn updates_that_diverge_are_rolled_back_then_learning_pauses_and_the_learn
     let (exit, log) = learner.stop();
     assert!(exit.success(), "{log}");
     assert!(log.contains("learning is paused"), "{log}");
-    assert_eq!(checkpoints(&run).len(), 1, "{log}");
     let metrics = std::fs::read_to_string(run.join("metrics.jsonl")).unwrap();
     assert!(metrics.contains("\"divergence\""), "{metrics}");
+    (dir, run, log)
 }
 
 /// The learner keeps freed memory 30 s for reuse: it re-executes itself
