@@ -5,8 +5,14 @@
 //! One file per checkpoint, `ckpt-<updates>-<steps>.twz`:
 //!
 //! ```text
-//! "TWZCKPT1" | header length (u64 LE) | header (JSON) | parts... | SHA-256 of all before
+//! "TWZCKPT2" | parts... | header (JSON) | header length (u64 LE) | SHA-256 of all before
 //! ```
+//!
+//! The header, which names the parts and their lengths, comes last so that
+//! each part is written as soon as it is serialised and dropped before the
+//! next: a checkpoint never holds the whole state twice in memory. Files
+//! of the first format, `"TWZCKPT1" | header length | header | parts... |
+//! SHA-256`, read as before.
 //!
 //! Files are written atomically ([`crate::durable_write::write_atomic`]);
 //! a file that is truncated or corrupt fails its checksum and resuming
@@ -19,12 +25,14 @@ use crate::snapshots::SnapshotsState;
 use serde::{Deserialize, Serialize};
 use sha2::{Digest, Sha256};
 use std::collections::{BTreeMap, BTreeSet};
-use std::io::{self, Read, Write};
+use std::io::{self, Read, Seek, SeekFrom, Write};
 use std::ops::{Deref, Range};
 use std::path::{Path, PathBuf};
 use tweezer_nets::Architecture;
 
-const MAGIC: &[u8; 8] = b"TWZCKPT1";
+const MAGIC: &[u8; 8] = b"TWZCKPT2";
+/// The first format's magic: the header before the parts.
+const MAGIC_HEADER_FIRST: &[u8; 8] = b"TWZCKPT1";
 const EXTENSION: &str = "twz";
 
 /// The learner's state besides the tensors.
@@ -146,17 +154,15 @@ impl Checkpoints {
         &self.dir
     }
 
-    /// Writes a checkpoint of `header` and `parts`, then deletes the oldest
-    /// beyond `keep`. Returns its path.
-    pub fn write<P: Deref<Target = [u8]>>(
+    /// Writes a checkpoint of `header` and `parts`, each part written as
+    /// it comes and dropped before the next is made, then deletes the
+    /// oldest beyond `keep`. Returns its path. An error from `parts` fails
+    /// the write and leaves no file.
+    pub fn write<'a, P: Deref<Target = [u8]>>(
         &self,
         mut header: CheckpointHeader,
-        parts: &[(&str, P)],
+        parts: impl IntoIterator<Item = io::Result<(&'a str, P)>>,
     ) -> Result<PathBuf, CheckpointError> {
-        header.parts = parts
-            .iter()
-            .map(|(name, bytes)| (name.to_string(), bytes.len() as u64))
-            .collect();
         let path = self.dir.join(format!(
             "ckpt-{:012}-{:012}.{EXTENSION}",
             header.updates, header.steps_inserted
@@ -165,18 +171,21 @@ impl Checkpoints {
             path: path.clone(),
             source,
         };
-        let json = serde_json::to_vec(&header).map_err(|e| io_error(io::Error::other(e)))?;
         write_atomic(&path, |w: &mut dyn Write| {
             let mut hashing = Hashing {
                 inner: w,
                 hash: Sha256::new(),
             };
             hashing.write_all(MAGIC)?;
-            hashing.write_all(&(json.len() as u64).to_le_bytes())?;
-            hashing.write_all(&json)?;
-            for (_, bytes) in parts {
-                hashing.write_all(bytes)?;
+            header.parts.clear();
+            for part in parts {
+                let (name, bytes) = part?;
+                hashing.write_all(&bytes)?;
+                header.parts.push((name.to_string(), bytes.len() as u64));
             }
+            let json = serde_json::to_vec(&header).map_err(io::Error::other)?;
+            hashing.write_all(&json)?;
+            hashing.write_all(&(json.len() as u64).to_le_bytes())?;
             let digest = hashing.hash.finalize();
             hashing.inner.write_all(&digest)
         })
@@ -273,14 +282,34 @@ pub fn read_header(path: &Path) -> Result<CheckpointHeader, CheckpointError> {
         source,
     };
     let mut file = std::fs::File::open(path).map_err(io_error)?;
-    let mut head = [0u8; 16];
-    file.read_exact(&mut head).map_err(io_error)?;
-    if &head[..MAGIC.len()] != MAGIC {
-        return Err(corrupt("not a checkpoint file".into()));
+    let size = file.metadata().map_err(io_error)?.len();
+    let mut magic = [0u8; 8];
+    file.read_exact(&mut magic).map_err(io_error)?;
+    let header_first = match &magic {
+        MAGIC => false,
+        MAGIC_HEADER_FIRST => true,
+        _ => return Err(corrupt("not a checkpoint file".into())),
+    };
+    let mut length = [0u8; 8];
+    if !header_first {
+        // The length sits before the digest at the end.
+        let at = size
+            .checked_sub(32 + 8)
+            .filter(|at| *at >= 8)
+            .ok_or_else(|| corrupt("cut short".into()))?;
+        file.seek(SeekFrom::Start(at)).map_err(io_error)?;
     }
-    let len = u64::from_le_bytes(head[8..].try_into().expect("8 bytes"));
-    if len > MAX_HEADER {
+    file.read_exact(&mut length).map_err(io_error)?;
+    let len = u64::from_le_bytes(length);
+    if len > MAX_HEADER || len > size {
         return Err(corrupt(format!("a header of {len} bytes")));
+    }
+    if !header_first {
+        let at = (size - 32 - 8)
+            .checked_sub(len)
+            .filter(|at| *at >= 8)
+            .ok_or_else(|| corrupt("header length beyond the file".into()))?;
+        file.seek(SeekFrom::Start(at)).map_err(io_error)?;
     }
     let mut json = vec![0; len as usize];
     file.read_exact(&mut json).map_err(io_error)?;
@@ -297,7 +326,10 @@ pub fn read(path: &Path) -> Result<Loaded, CheckpointError> {
         path: path.into(),
         source,
     })?;
-    if bytes.len() < MAGIC.len() + 8 + 32 || &bytes[..MAGIC.len()] != MAGIC {
+    let magic = bytes.get(..MAGIC.len());
+    if bytes.len() < MAGIC.len() + 8 + 32
+        || (magic != Some(&MAGIC[..]) && magic != Some(&MAGIC_HEADER_FIRST[..]))
+    {
         return Err(corrupt("not a checkpoint file, or cut short".into()));
     }
     let (body, digest) = bytes.split_at(bytes.len() - 32);
@@ -306,23 +338,36 @@ pub fn read(path: &Path) -> Result<Loaded, CheckpointError> {
             "checksum mismatch: the file was cut short or altered".into(),
         ));
     }
-    let json_len = u64::from_le_bytes(body[8..16].try_into().expect("8 bytes")) as usize;
-    let json = body
-        .get(16..16usize.saturating_add(json_len))
-        .ok_or_else(|| corrupt("header length beyond the file".into()))?;
+    let length = |at: usize| u64::from_le_bytes(body[at..at + 8].try_into().expect("8 bytes"));
+    // Where the header lies and where the parts do.
+    let (json, parts_at, parts_end) = if magic == Some(&MAGIC_HEADER_FIRST[..]) {
+        let json_len = length(8) as usize;
+        let end = 16usize.saturating_add(json_len);
+        let json = body
+            .get(16..end)
+            .ok_or_else(|| corrupt("header length beyond the file".into()))?;
+        (json, end, body.len())
+    } else {
+        let end = body.len() - 8;
+        let start = end
+            .checked_sub(length(end) as usize)
+            .filter(|start| *start >= 8)
+            .ok_or_else(|| corrupt("header length beyond the file".into()))?;
+        (&body[start..end], 8, start)
+    };
     let header: CheckpointHeader =
         serde_json::from_slice(json).map_err(|e| corrupt(format!("header: {e}")))?;
     let mut parts = BTreeMap::new();
-    let mut at = 16 + json_len;
+    let mut at = parts_at;
     for (name, len) in &header.parts {
         let end = at.saturating_add(*len as usize);
-        if end > body.len() {
+        if end > parts_end {
             return Err(corrupt(format!("part `{name}` runs past the end")));
         }
         parts.insert(name.clone(), at..end);
         at = end;
     }
-    if at != body.len() {
+    if at != parts_end {
         return Err(corrupt("bytes after the last part".into()));
     }
     Ok(Loaded {

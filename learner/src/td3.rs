@@ -562,21 +562,38 @@ impl<N: Networks> Td3<N> {
     /// The networks, targets and optimiser states as named burnpack byte
     /// buffers, for a checkpoint.
     pub fn save_state(&self) -> Result<Vec<(&'static str, Bytes)>, RecordError> {
-        let module = |record: ModuleRecord| record.into_bytes();
-        Ok(vec![
-            ("actor", module(self.actor.clone().into_record())?),
-            ("critics", module(self.critics.clone().into_record())?),
+        self.state_parts().collect()
+    }
+
+    /// [`Self::save_state`]'s buffers one at a time, each serialised when
+    /// it is asked for.
+    pub fn state_parts(
+        &self,
+    ) -> impl Iterator<Item = Result<(&'static str, Bytes), RecordError>> + '_ {
+        type Make<'a> = Box<dyn Fn() -> Result<Bytes, RecordError> + 'a>;
+        let parts: [(&'static str, Make<'_>); 6] = [
+            (
+                "actor",
+                Box::new(|| self.actor.clone().into_record().into_bytes()),
+            ),
+            (
+                "critics",
+                Box::new(|| self.critics.clone().into_record().into_bytes()),
+            ),
             (
                 "actor_target",
-                module(self.actor_target.clone().into_record())?,
+                Box::new(|| self.actor_target.clone().into_record().into_bytes()),
             ),
             (
                 "critics_target",
-                module(self.critics_target.clone().into_record())?,
+                Box::new(|| self.critics_target.clone().into_record().into_bytes()),
             ),
-            ("actor_optim", self.actor_optim.into_bytes()?),
-            ("critic_optim", self.critic_optim.into_bytes()?),
-        ])
+            ("actor_optim", Box::new(|| self.actor_optim.into_bytes())),
+            ("critic_optim", Box::new(|| self.critic_optim.into_bytes())),
+        ];
+        parts
+            .into_iter()
+            .map(|(name, make)| make().map(|bytes| (name, bytes)))
     }
 
     /// Restores what [`Self::save_state`] saved, `updates` updates in;

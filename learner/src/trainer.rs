@@ -12,6 +12,7 @@ use crate::td3::{Td3, UpdateStats};
 use anyhow::{Context, bail};
 use burn::tensor::{Bytes, Device};
 use serde::Serialize;
+use std::io;
 use std::path::PathBuf;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
@@ -466,11 +467,14 @@ impl<N: Networks> Trainer<N> {
             sessions: captured.actors,
             parts: Vec::new(),
         };
-        let mut parts = self.td3.save_state()?;
-        if let Some(replay) = captured.replay {
-            parts.push(("replay", Bytes::from_bytes_vec(replay)));
-        }
-        let path = self.checkpoints.write(header, &parts)?;
+        let replay = captured
+            .replay
+            .map(|replay| Ok(("replay", Bytes::from_bytes_vec(replay))));
+        let parts = self
+            .td3
+            .state_parts()
+            .map(|part| part.map_err(io::Error::other));
+        let path = self.checkpoints.write(header, parts.chain(replay))?;
         // The snapshots the kept checkpoints need stay on disk until no
         // kept checkpoint needs them. Their headers are read before the
         // store is locked: every acknowledgement takes that lock.

@@ -2,7 +2,9 @@
 //! one found past newer files that are cut short or altered, the oldest
 //! pruned.
 
-use tweezer_learner::checkpoint::{CheckpointHeader, Checkpoints, read};
+use sha2::{Digest, Sha256};
+use std::io;
+use tweezer_learner::checkpoint::{CheckpointHeader, Checkpoints, read, read_header};
 
 fn header(updates: u64) -> CheckpointHeader {
     CheckpointHeader {
@@ -21,7 +23,7 @@ fn the_newest_whole_checkpoint_is_found_and_old_ones_pruned() {
     let parts = |k: u8| vec![("a", vec![k; 1000]), ("b", vec![k + 1; 17])];
     for updates in [10, 20, 30] {
         checkpoints
-            .write(header(updates), &parts(updates as u8))
+            .write(header(updates), parts(updates as u8).into_iter().map(Ok))
             .unwrap();
     }
     let files = checkpoints.list().unwrap();
@@ -29,6 +31,7 @@ fn the_newest_whole_checkpoint_is_found_and_old_ones_pruned() {
 
     let loaded = read(&files[0]).unwrap();
     assert_eq!(loaded.header.updates, 30);
+    assert_eq!(read_header(&files[0]).unwrap().updates, 30);
     assert_eq!(loaded.header.sampler_state, 77);
     assert_eq!(loaded.part("a").unwrap(), &[30u8; 1000][..]);
     assert_eq!(loaded.part("b").unwrap(), &[31u8; 17][..]);
@@ -52,4 +55,48 @@ fn the_newest_whole_checkpoint_is_found_and_old_ones_pruned() {
         assert!(error.to_string().contains("checksum mismatch"), "{error}");
     }
     assert!(read(&dir.path().join("missing.twz")).is_err());
+}
+
+#[test]
+fn a_part_that_cannot_be_made_fails_the_write_and_leaves_no_file() {
+    let dir = tempfile::tempdir().unwrap();
+    let checkpoints = Checkpoints::open(dir.path(), 2).unwrap();
+    let parts = [
+        Ok(("a", vec![1u8; 100])),
+        Err(io::Error::other(
+            "the optimiser's record would not serialise",
+        )),
+    ];
+    let error = checkpoints.write(header(10), parts).unwrap_err();
+    assert!(error.to_string().contains("would not serialise"), "{error}");
+    let left: Vec<_> = std::fs::read_dir(dir.path()).unwrap().collect();
+    assert!(left.is_empty(), "{left:?}");
+}
+
+/// Checkpoints of the first format, the header before the parts, still
+/// resume a run.
+#[test]
+fn checkpoints_of_the_first_format_read_back() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut header = header(40);
+    header.parts = vec![("a".into(), 3), ("b".into(), 2)];
+    let json = serde_json::to_vec(&header).unwrap();
+    let mut bytes = b"TWZCKPT1".to_vec();
+    bytes.extend((json.len() as u64).to_le_bytes());
+    bytes.extend(&json);
+    bytes.extend([1, 2, 3, 4, 5]);
+    bytes.extend(Sha256::digest(&bytes));
+    let path = dir.path().join("ckpt-000000000040-000000000080.twz");
+    std::fs::write(&path, &bytes).unwrap();
+
+    let loaded = read(&path).unwrap();
+    assert_eq!(loaded.header.updates, 40);
+    assert_eq!(loaded.part("a").unwrap(), &[1, 2, 3][..]);
+    assert_eq!(loaded.part("b").unwrap(), &[4, 5][..]);
+    assert_eq!(read_header(&path).unwrap().updates, 40);
+    let (found, _) = Checkpoints::open(dir.path(), 2)
+        .unwrap()
+        .newest_valid()
+        .unwrap();
+    assert_eq!(found.unwrap().header.updates, 40);
 }

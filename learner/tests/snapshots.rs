@@ -97,7 +97,7 @@ fn snapshots_a_kept_checkpoint_needs_are_never_pruned() {
             snapshots: store.state(),
             ..CheckpointHeader::default()
         };
-        checkpoints.write::<Vec<u8>>(header, &[]).unwrap();
+        checkpoints.write::<Vec<u8>>(header, []).unwrap();
         store.pin(checkpoints.needed_snapshots());
     };
     publish(&mut store);

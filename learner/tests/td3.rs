@@ -318,7 +318,9 @@ fn a_diverged_update_rolls_back_to_the_newest_checkpoint_then_to_older_ones() {
             architecture: Some(architecture),
             ..CheckpointHeader::default()
         };
-        checkpoints.write(header, &state(td3)).unwrap()
+        checkpoints
+            .write(header, state(td3).into_iter().map(Ok))
+            .unwrap()
     };
     let train = |td3: &mut Td3<PaperNetworks>, updates: usize| {
         for _ in 0..updates {
