@@ -285,32 +285,35 @@ pub fn read_header(path: &Path) -> Result<CheckpointHeader, CheckpointError> {
     let size = file.metadata().map_err(io_error)?.len();
     let mut magic = [0u8; 8];
     file.read_exact(&mut magic).map_err(io_error)?;
-    let header_first = match &magic {
-        MAGIC => false,
-        MAGIC_HEADER_FIRST => true,
+    let read_length = |file: &mut std::fs::File| {
+        let mut length = [0u8; 8];
+        file.read_exact(&mut length).map_err(io_error)?;
+        let len = u64::from_le_bytes(length);
+        if len > MAX_HEADER || len > size {
+            return Err(corrupt(format!("a header of {len} bytes")));
+        }
+        Ok(len)
+    };
+    let len = match &magic {
+        // The header's length and the header follow the magic.
+        MAGIC_HEADER_FIRST => read_length(&mut file)?,
+        // The length sits before the digest at the end, the header before it.
+        MAGIC => {
+            let length_at = size
+                .checked_sub(32 + 8)
+                .filter(|at| *at >= 8)
+                .ok_or_else(|| corrupt("cut short".into()))?;
+            file.seek(SeekFrom::Start(length_at)).map_err(io_error)?;
+            let len = read_length(&mut file)?;
+            let header_at = length_at
+                .checked_sub(len)
+                .filter(|at| *at >= 8)
+                .ok_or_else(|| corrupt("header length beyond the file".into()))?;
+            file.seek(SeekFrom::Start(header_at)).map_err(io_error)?;
+            len
+        }
         _ => return Err(corrupt("not a checkpoint file".into())),
     };
-    let mut length = [0u8; 8];
-    if !header_first {
-        // The length sits before the digest at the end.
-        let at = size
-            .checked_sub(32 + 8)
-            .filter(|at| *at >= 8)
-            .ok_or_else(|| corrupt("cut short".into()))?;
-        file.seek(SeekFrom::Start(at)).map_err(io_error)?;
-    }
-    file.read_exact(&mut length).map_err(io_error)?;
-    let len = u64::from_le_bytes(length);
-    if len > MAX_HEADER || len > size {
-        return Err(corrupt(format!("a header of {len} bytes")));
-    }
-    if !header_first {
-        let at = (size - 32 - 8)
-            .checked_sub(len)
-            .filter(|at| *at >= 8)
-            .ok_or_else(|| corrupt("header length beyond the file".into()))?;
-        file.seek(SeekFrom::Start(at)).map_err(io_error)?;
-    }
     let mut json = vec![0; len as usize];
     file.read_exact(&mut json).map_err(io_error)?;
     serde_json::from_slice(&json).map_err(|e| corrupt(format!("header: {e}")))

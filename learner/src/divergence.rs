@@ -99,6 +99,18 @@ impl<N: Networks> DivergenceGuard<N> {
         }
     }
 
+    /// Whether the guard rolls back to checkpoints and none is there for
+    /// `td3` (of its networks, at or before its updates): one should be
+    /// written before training.
+    pub fn needs_checkpoint(&self, td3: &Td3<N>) -> bool {
+        match &self.good {
+            Good::Copy(_) => false,
+            Good::Checkpoints(checkpoints) => {
+                !candidates(checkpoints, td3).is_ok_and(|found| !found.is_empty())
+            }
+        }
+    }
+
     fn keeping(good: Good<N>) -> Self {
         Self {
             good,
@@ -203,12 +215,6 @@ fn restore<N: Networks>(
         ));
     }
     Err(why.join("; "))
-}
-
-/// Whether `checkpoints` holds one `td3` can roll back to: of its networks,
-/// at or before its updates.
-pub fn has_checkpoint_for<N: Networks>(checkpoints: &Checkpoints, td3: &Td3<N>) -> bool {
-    candidates(checkpoints, td3).is_ok_and(|found| !found.is_empty())
 }
 
 /// The checkpoints of `td3`'s networks at or before its updates, newest

@@ -4,7 +4,7 @@
 
 use crate::checkpoint::{CheckpointHeader, Checkpoints, Loaded};
 use crate::config::LearnerFile;
-use crate::divergence::{DivergenceGuard, Verdict, has_checkpoint_for};
+use crate::divergence::{DivergenceGuard, Verdict};
 use crate::learner_state::LearnerState;
 use crate::limiter::limiter_state_name;
 use crate::minibatch::minibatch_tensors;
@@ -198,9 +198,7 @@ impl<N: Networks> Trainer<N> {
     fn train(&mut self) -> anyhow::Result<()> {
         let config = self.file.learner.clone();
         let every_checkpoint = Duration::from_secs_f64(config.checkpoints.every_seconds);
-        if config.rollback.keeps_checkpoints(&self.td3)
-            && !has_checkpoint_for(&self.checkpoints, &self.td3)
-        {
+        if self.guard.needs_checkpoint(&self.td3) {
             // Something for a diverged update to roll back to.
             self.checkpoint()?;
         }
