@@ -30,10 +30,10 @@ fn wgpu() -> Device {
     Device::wgpu(DeviceKind::DefaultDevice)
 }
 
-/// Whether wgpu opens an adapter here. Where it does not (no Vulkan,
-/// Metal or DirectX driver: Debian's `mesa-vulkan-drivers` provides a
-/// software one), a test says so on stderr and returns early, unless
-/// [`REQUIRE`] is set.
+/// Whether wgpu opens an adapter here. Where it does not (no graphics
+/// driver it can use: Debian's `mesa-vulkan-drivers` provides a software
+/// one), a test says so on stderr and returns early, unless [`REQUIRE`] is
+/// set.
 fn wgpu_available() -> bool {
     static PROBE: OnceLock<Result<(), String>> = OnceLock::new();
     let probe = PROBE.get_or_init(|| {
