@@ -291,7 +291,8 @@ pub enum DeviceChoice {
     Flex,
     /// The first CUDA GPU (feature `cuda`).
     Cuda,
-    /// The default wgpu adapter: Vulkan, Metal or DirectX (feature `wgpu`).
+    /// The default wgpu adapter on Vulkan, Metal or DirectX 12 (feature
+    /// `wgpu`); never OpenGL, whose drivers lack what Burn's kernels use.
     Wgpu,
 }
 
@@ -305,7 +306,7 @@ impl DeviceChoice {
             #[cfg(not(feature = "cuda"))]
             Self::Cuda => Err(missing("cuda")),
             #[cfg(feature = "wgpu")]
-            Self::Wgpu => Ok(Device::wgpu(burn::tensor::DeviceKind::DefaultDevice)),
+            Self::Wgpu => wgpu_device(),
             #[cfg(not(feature = "wgpu"))]
             Self::Wgpu => Err(missing("wgpu")),
         }
@@ -324,6 +325,45 @@ impl DeviceChoice {
         let _ = device;
         name
     }
+}
+
+/// The graphics APIs the wgpu device may come up on, best first.
+#[cfg(feature = "wgpu")]
+const WGPU_APIS: &[burn::tensor::wgpu::WgpuBackend] = {
+    use burn::tensor::wgpu::WgpuBackend::{Dx12, Metal, Vulkan};
+    if cfg!(target_os = "macos") {
+        &[Metal]
+    } else if cfg!(windows) {
+        &[Vulkan, Dx12]
+    } else {
+        &[Vulkan]
+    }
+};
+
+/// The wgpu device on the first of [`WGPU_APIS`] with an adapter, opened
+/// once per process, or an error naming what each API answered. Burn's own
+/// choice would fall back to OpenGL, where Mesa's drivers lack the subgroup
+/// operations of Burn's matrix kernels (a batch-1 inference then panicked),
+/// and a machine without any driver panics at the first tensor instead.
+#[cfg(feature = "wgpu")]
+fn wgpu_device() -> Result<Device, ConfigError> {
+    static DEVICE: std::sync::OnceLock<Result<Device, String>> = std::sync::OnceLock::new();
+    let opened = DEVICE.get_or_init(|| {
+        let mut answers = Vec::new();
+        for &api in WGPU_APIS {
+            match Device::wgpu_options().graphics_api(api).init() {
+                Ok(device) => return Ok(device),
+                Err(e) => answers.push(format!("{api:?}: {e}")),
+            }
+        }
+        Err(answers.join("; "))
+    });
+    opened.clone().map_err(|answers| ConfigError::Invalid {
+        field: "learner.device".into(),
+        reason: format!(
+            "`wgpu` found no adapter on Vulkan, Metal or DirectX 12 ({answers}); install the GPU's Vulkan driver (or Mesa's software one, Debian's mesa-vulkan-drivers), or choose `flex`"
+        ),
+    })
 }
 
 #[cfg(not(all(feature = "cuda", feature = "wgpu")))]

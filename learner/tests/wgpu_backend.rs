@@ -7,13 +7,12 @@
 mod agreement;
 
 use agreement::assert_same_update;
-use burn::tensor::{Device, DeviceKind, Tensor};
+use burn::tensor::Device;
 use std::io::{BufRead, BufReader};
-use std::panic::{AssertUnwindSafe, catch_unwind};
 use std::process::{Child, Command, Stdio};
-use std::sync::OnceLock;
 use std::time::{Duration, Instant};
 use tweezer_gym::{EnvConfig, ImageConfig, SplitMix64};
+use tweezer_learner::config::DeviceChoice;
 use tweezer_learner::loopback::batches;
 use tweezer_learner::minibatch::minibatch_tensors;
 use tweezer_learner::replay::{Replay, ReplayConfig};
@@ -26,8 +25,11 @@ use tweezer_rpc::{ClientSecurity, LoopbackCredentials, Security};
 /// adapter then fails them instead of skipping them (`.ci/run` sets it).
 const REQUIRE: &str = "TWEEZER_REQUIRE_WGPU";
 
+/// The learner's wgpu device (`learner.device = "wgpu"`).
 fn wgpu() -> Device {
-    Device::wgpu(DeviceKind::DefaultDevice)
+    DeviceChoice::Wgpu
+        .device()
+        .expect("probed by wgpu_available")
 }
 
 /// Whether wgpu opens an adapter here. Where it does not (no graphics
@@ -35,28 +37,13 @@ fn wgpu() -> Device {
 /// one), a test says so on stderr and returns early, unless [`REQUIRE`] is
 /// set.
 fn wgpu_available() -> bool {
-    static PROBE: OnceLock<Result<(), String>> = OnceLock::new();
-    let probe = PROBE.get_or_init(|| {
-        catch_unwind(AssertUnwindSafe(|| {
-            Tensor::<1>::ones([1], &wgpu()).into_data();
-        }))
-        .map_err(|panic| {
-            panic
-                .downcast_ref::<String>()
-                .cloned()
-                .or_else(|| panic.downcast_ref::<&str>().map(|s| s.to_string()))
-                .unwrap_or_else(|| "a panic without a message".into())
-        })
-    });
-    match probe {
-        Ok(()) => true,
+    match DeviceChoice::Wgpu.device() {
+        Ok(_) => true,
         Err(why) if std::env::var(REQUIRE).is_ok_and(|v| v == "1") => {
             panic!("{REQUIRE}=1 but wgpu opens no adapter: {why}")
         }
         Err(why) => {
-            eprintln!(
-                "skipped: wgpu opens no adapter on this machine ({why}; its runtime's panic above says why); {REQUIRE}=1 fails instead"
-            );
+            eprintln!("skipped: {why}; {REQUIRE}=1 fails instead");
             false
         }
     }
@@ -146,12 +133,9 @@ fn set_network_updates_on_wgpu_agree_with_the_cpu() {
     check(&updates_on_both(networks, 4));
 }
 
-/// `learner bench --json` says it ran on wgpu, and which GPU.
-#[test]
-fn learner_bench_reports_the_wgpu_device() {
-    if !wgpu_available() {
-        return;
-    }
+/// `learner bench` on wgpu at 20 × 16 with `args`; each of `vars` names
+/// a file in a fresh directory, for the command's environment.
+fn bench_on_wgpu(args: &[&str], vars: &[(&str, &str)]) -> std::process::Output {
     let dir = tempfile::tempdir().unwrap();
     let config = dir.path().join("config.toml");
     std::fs::write(
@@ -159,24 +143,52 @@ fn learner_bench_reports_the_wgpu_device() {
         "[env.image]\nwidth = 20\nheight = 16\n[learner]\ndevice = \"wgpu\"\n",
     )
     .unwrap();
-    let output = Command::new(env!("CARGO_BIN_EXE_learner"))
-        .arg("--config")
-        .arg(&config)
-        .args([
-            "bench",
-            "--json",
-            "--updates",
-            "2",
-            "--replay-capacity",
-            "2000",
-        ])
-        .output()
-        .unwrap();
+    let mut command = Command::new(env!("CARGO_BIN_EXE_learner"));
+    command.arg("--config").arg(&config).arg("bench").args(args);
+    for (name, file) in vars {
+        command.env(name, dir.path().join(file));
+    }
+    command.output().unwrap()
+}
+
+/// `learner bench --json` says it ran on wgpu, and which GPU.
+#[test]
+fn learner_bench_reports_the_wgpu_device() {
+    if !wgpu_available() {
+        return;
+    }
+    let output = bench_on_wgpu(
+        &["--json", "--updates", "2", "--replay-capacity", "2000"],
+        &[],
+    );
     assert!(output.status.success(), "{output:?}");
     let report: serde_json::Value = serde_json::from_slice(&output.stdout).unwrap();
     let device = report["device"].as_str().unwrap();
     assert!(device.starts_with("wgpu ("), "{report}");
     assert!(report["update_ms_mean"].as_f64().unwrap() > 0.0, "{report}");
+}
+
+/// Where the Vulkan loader finds no driver, `learner bench` on wgpu fails
+/// with an error naming the config field, instead of panicking or falling
+/// back to OpenGL (whatever this machine has).
+#[test]
+fn no_vulkan_driver_is_a_config_error() {
+    // The Vulkan loader reads its drivers from the files these name only:
+    // here, a file that does not exist.
+    let output = bench_on_wgpu(
+        &["--updates", "1", "--replay-capacity", "100"],
+        &[
+            ("VK_ICD_FILENAMES", "none.json"),
+            ("VK_DRIVER_FILES", "none.json"),
+        ],
+    );
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert_eq!(output.status.code(), Some(1), "{output:?}");
+    assert!(
+        stderr.contains("learner.device") && stderr.contains("no adapter"),
+        "{stderr}"
+    );
+    assert!(!stderr.contains("panicked"), "{stderr}");
 }
 
 /// `learner serve` with `device = "wgpu"`, fed random-policy steps over
