@@ -361,7 +361,7 @@ fn wgpu_device() -> Result<Device, ConfigError> {
     opened.clone().map_err(|answers| ConfigError::Invalid {
         field: "learner.device".into(),
         reason: format!(
-            "`wgpu` found no adapter on Vulkan, Metal or DirectX 12 ({answers}); install the GPU's Vulkan driver (or Mesa's software one, Debian's mesa-vulkan-drivers), or choose `flex`"
+            "`wgpu` found no adapter ({answers}); install the GPU's Vulkan driver (or Mesa's software one, Debian's mesa-vulkan-drivers), or choose `flex`"
         ),
     })
 }
