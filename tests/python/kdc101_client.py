@@ -90,6 +90,13 @@ def main(port, auto_port):
         channels=(1,),
         home=False,
     )
+    # The library's reader hands its thread back to queued commands only
+    # when a read times out, after 0.1 s: the controller's update period.
+    # Over USB a KDC101's updates reach the host in the 16 ms ticks of its
+    # FTDI chip's latency timer, so reads time out now and then; on the
+    # twin's pseudo-terminal they come every 100 ms, and the move below
+    # waited over 15 s in about one run in five.
+    auto._port.timeout = 0.05
     auto.set_enabled(True)
     auto.set_velocity_params(acceleration=2 * 264, max_velocity=VELOCITY_PER_MM_S)
     moving = auto.status_[0][0]
