@@ -302,7 +302,10 @@ impl DeviceChoice {
         match self {
             Self::Flex => Ok(Device::flex()),
             #[cfg(feature = "cuda")]
-            Self::Cuda => Ok(Device::cuda(0)),
+            Self::Cuda => {
+                one_stream();
+                Ok(Device::cuda(0))
+            }
             #[cfg(not(feature = "cuda"))]
             Self::Cuda => Err(missing("cuda")),
             #[cfg(feature = "wgpu")]
@@ -327,6 +330,17 @@ impl DeviceChoice {
     }
 }
 
+/// Puts the work of every thread on one stream of Burn's GPU runtimes,
+/// before the first kernel. By default each thread gets its own, and a TD3
+/// step on another thread than the one its tensors came from (the learner
+/// builds its networks on one thread and trains on another) came out wrong
+/// in fresh processes on wgpu: 4 of 4, against 0 of 4 on one stream.
+#[cfg(any(feature = "cuda", feature = "wgpu"))]
+fn one_stream() {
+    use cubecl_environment::stream::{StreamPolicy, set_policy};
+    set_policy(StreamPolicy::Single);
+}
+
 /// The graphics APIs the wgpu device may come up on, best first.
 #[cfg(feature = "wgpu")]
 const WGPU_APIS: &[burn::tensor::wgpu::WgpuBackend] = {
@@ -349,6 +363,7 @@ const WGPU_APIS: &[burn::tensor::wgpu::WgpuBackend] = {
 fn wgpu_device() -> Result<Device, ConfigError> {
     static DEVICE: std::sync::OnceLock<Result<Device, String>> = std::sync::OnceLock::new();
     let opened = DEVICE.get_or_init(|| {
+        one_stream();
         let mut answers = Vec::new();
         for &api in WGPU_APIS {
             match Device::wgpu_options().graphics_api(api).init() {

@@ -314,9 +314,8 @@ impl<N: Networks> Td3<N> {
 /// backend's parallel loops run there. Called from any other thread, each
 /// of those loops (hundreds in an update) is a hand-over to the pool and a
 /// wait for its result; on a worker, the step's own thread takes part in
-/// them. Elsewhere on the calling thread: GPU runtimes queue work per
-/// thread, and a step hopping between workers made wgpu's updates come out
-/// wrong (`learner/tests/wgpu_backend.rs`).
+/// them. Elsewhere on the calling thread: a GPU runs the step's kernels
+/// from one queue (`config::DeviceChoice::device`).
 fn on_worker<R: Send>(on_cpu: bool, step: impl FnOnce() -> R + Send) -> R {
     if on_cpu {
         rayon::scope(|_| step())
