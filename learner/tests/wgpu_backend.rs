@@ -49,6 +49,17 @@ fn wgpu_available() -> bool {
     }
 }
 
+/// Held by each test while it uses wgpu, here or in a child process: one
+/// at a time, as a learner runs one trainer. With another test's trainer
+/// or `learner` process on lavapipe beside it, the CNN agreement test went
+/// wrong in 2 of 10 runs of this binary (mean Q of update 1 off by 8 and
+/// 21 %; update 0 agreed); alone, or beside the set networks' test only,
+/// it passed every run. The cause is not found.
+fn device_turn() -> std::sync::MutexGuard<'static, ()> {
+    static TURN: std::sync::Mutex<()> = std::sync::Mutex::new(());
+    TURN.lock().unwrap_or_else(|poisoned| poisoned.into_inner())
+}
+
 fn env() -> EnvConfig {
     EnvConfig {
         image: ImageConfig {
@@ -127,6 +138,7 @@ fn cnn_updates_on_wgpu_agree_with_the_cpu() {
     if !wgpu_available() {
         return;
     }
+    let _turn = device_turn();
     let networks = PaperNetworks::new(tweezer_gym::Renderer::for_config(&env()).unwrap());
     check(&updates_on_both(networks, 4, false));
 }
@@ -136,6 +148,7 @@ fn set_network_updates_on_wgpu_agree_with_the_cpu() {
     if !wgpu_available() {
         return;
     }
+    let _turn = device_turn();
     check(&updates_on_both(set_networks(), 4, false));
 }
 
@@ -148,6 +161,7 @@ fn updates_on_wgpu_agree_when_each_step_runs_on_another_thread() {
     if !wgpu_available() {
         return;
     }
+    let _turn = device_turn();
     let inner = "steps_on_threads_of_their_own";
     let output = Command::new(std::env::current_exe().unwrap())
         .args(["--exact", "--ignored", "--nocapture", inner])
@@ -169,6 +183,7 @@ fn steps_on_threads_of_their_own() {
     if !wgpu_available() {
         return;
     }
+    let _turn = device_turn();
     check(&updates_on_both(set_networks(), 6, true));
 }
 
@@ -201,6 +216,7 @@ fn learner_bench_reports_the_wgpu_device() {
     if !wgpu_available() {
         return;
     }
+    let _turn = device_turn();
     let output = bench_on_wgpu(
         &["--json", "--updates", "2", "--replay-capacity", "2000"],
         &[],
@@ -242,6 +258,7 @@ fn learner_serve_trains_on_wgpu() {
     if !wgpu_available() {
         return;
     }
+    let _turn = device_turn();
     let dir = tempfile::tempdir().unwrap();
     let credentials = LoopbackCredentials::provision(&dir.path().join("security")).unwrap();
     let config = dir.path().join("config.toml");
