@@ -157,13 +157,13 @@ fn the_segment_command_prints_one_json_line_per_file_and_names_a_bad_one() {
     write_frame(&good, &optics.render(&scene, &[], 2)).unwrap();
     let bad = dir.path().join("broken.tif");
     std::fs::write(&bad, b"II*\0 truncated").unwrap();
-    let out = std::process::Command::new(env!("CARGO_BIN_EXE_hardware-agent"))
-        .arg("segment")
-        .arg(&good)
-        .arg(&bad)
-        .arg("--json")
-        .output()
-        .unwrap();
+    let out = tweezer_system_tests::output_of(
+        std::process::Command::new(env!("CARGO_BIN_EXE_hardware-agent"))
+            .arg("segment")
+            .arg(&good)
+            .arg(&bad)
+            .arg("--json"),
+    );
     assert!(!out.status.success());
     let stdout = String::from_utf8(out.stdout).unwrap();
     let line: serde_json::Value = serde_json::from_str(stdout.lines().next().unwrap()).unwrap();

@@ -7,6 +7,7 @@ use serde_json::Value;
 use std::path::Path;
 use std::process::Command;
 use tweezer_nets::{ActorConfig, Architecture, EncoderConfig, SnapshotInfo, encode};
+use tweezer_system_tests::output_of;
 
 /// The `[control]` table of every config here: a step may start up to a
 /// second late. These tests drive the twin on a shared, possibly loaded
@@ -16,11 +17,11 @@ const CONTROL: &str = "[control]\ndeadline_margin_ms = 1000\n";
 
 /// Runs `hardware-agent` with `args`; its stdout lines as JSON and stderr.
 fn agent(args: &[&str]) -> (bool, Vec<Value>, String) {
-    let out = Command::new(env!("CARGO_BIN_EXE_hardware-agent"))
-        .args(args)
-        .env("RUST_LOG", "warn")
-        .output()
-        .unwrap();
+    let out = output_of(
+        Command::new(env!("CARGO_BIN_EXE_hardware-agent"))
+            .args(args)
+            .env("RUST_LOG", "warn"),
+    );
     let lines = String::from_utf8_lossy(&out.stdout)
         .lines()
         .map(|l| serde_json::from_str(l).unwrap())

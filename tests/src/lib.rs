@@ -80,12 +80,63 @@ pub fn binary(bin: &str) -> &'static Path {
         .unwrap_or_else(|| panic!("the workspace has no binary `{bin}`"))
 }
 
-/// Runs binary `bin` with `args` to completion.
+/// The longest a process that a test runs to completion may take: the
+/// slowest, a pip install or a sweep of short trainings, takes a few
+/// minutes on a loaded 2-core runner.
+pub const RUN_LIMIT: Duration = Duration::from_secs(15 * 60);
+
+/// Runs `command` to completion, its output captured. Past [`RUN_LIMIT`]
+/// it is killed and the test fails with what it printed, rather than
+/// hanging the test run.
+pub fn output_of(command: &mut Command) -> Output {
+    let program = command.get_program().to_string_lossy().into_owned();
+    let mut child = command
+        .stdin(Stdio::null())
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap_or_else(|e| panic!("cannot start {program}: {e}"));
+    let read = |pipe: Option<Box<dyn std::io::Read + Send>>| {
+        std::thread::spawn(move || {
+            let mut bytes = Vec::new();
+            if let Some(mut pipe) = pipe {
+                let _ = pipe.read_to_end(&mut bytes);
+            }
+            bytes
+        })
+    };
+    let stdout = read(child.stdout.take().map(|p| Box::new(p) as _));
+    let stderr = read(child.stderr.take().map(|p| Box::new(p) as _));
+    let deadline = Instant::now() + RUN_LIMIT;
+    let status = loop {
+        if let Some(status) = child.try_wait().expect("wait works") {
+            break Some(status);
+        }
+        if Instant::now() > deadline {
+            let _ = child.kill();
+            let _ = child.wait();
+            break None;
+        }
+        std::thread::sleep(Duration::from_millis(20));
+    };
+    let (stdout, stderr) = (stdout.join().unwrap(), stderr.join().unwrap());
+    let Some(status) = status else {
+        panic!(
+            "{program} ran past {RUN_LIMIT:?} and was killed:\n{}{}",
+            String::from_utf8_lossy(&stdout),
+            String::from_utf8_lossy(&stderr)
+        )
+    };
+    Output {
+        status,
+        stdout,
+        stderr,
+    }
+}
+
+/// Runs binary `bin` with `args` to completion (within [`RUN_LIMIT`]).
 pub fn run(bin: &str, args: &[&str]) -> Output {
-    Command::new(binary(bin))
-        .args(args)
-        .output()
-        .unwrap_or_else(|e| panic!("cannot start {bin}: {e}"))
+    output_of(Command::new(binary(bin)).args(args))
 }
 
 /// Standard output of a run that must succeed.
@@ -255,9 +306,13 @@ pub async fn connect(addr: &str, name: &str) -> tweezer_rpc::AuthChannel {
         .unwrap_or_else(|e| panic!("cannot connect to {addr}: {e}"))
 }
 
+/// The longest a service may take to start listening: a learner that
+/// resumes a run reads its checkpoint and replay first.
+pub const START_LIMIT: Duration = Duration::from_secs(120);
+
 /// Starts binary `bin` with `args` (its standard error to `log`, if
-/// given), waits for its first stdout line, `<bin> listening on ADDR`, and
-/// returns it with ADDR.
+/// given), waits (up to [`START_LIMIT`]) for its first stdout line,
+/// `<bin> listening on ADDR`, and returns it with ADDR.
 pub fn start_service(bin: &str, args: &[&str], log: Option<&Path>) -> (Child, String) {
     start_service_with_env(bin, args, &[], log)
 }
@@ -285,7 +340,8 @@ pub fn start_service_with_open_files(bin: &str, args: &[&str], limit: u64) -> (C
     spawn_service(bin, command, None)
 }
 
-fn spawn_service(bin: &str, mut command: Command, log: Option<&Path>) -> (Child, String) {
+/// [`start_service`] for a `command` that runs binary `bin`.
+pub fn spawn_service(bin: &str, mut command: Command, log: Option<&Path>) -> (Child, String) {
     let stderr = match log {
         Some(path) => Stdio::from(
             std::fs::File::create(path).unwrap_or_else(|e| panic!("cannot create the log: {e}")),
@@ -297,10 +353,22 @@ fn spawn_service(bin: &str, mut command: Command, log: Option<&Path>) -> (Child,
         .stderr(stderr)
         .spawn()
         .unwrap_or_else(|e| panic!("cannot start {bin}: {e}"));
-    let mut line = String::new();
-    BufReader::new(child.stdout.take().expect("stdout is piped"))
-        .read_line(&mut line)
-        .unwrap_or_else(|e| panic!("{bin} writes its address: {e}"));
+    let stdout = child.stdout.take().expect("stdout is piped");
+    let (sender, first) = std::sync::mpsc::channel();
+    std::thread::spawn(move || {
+        let mut line = String::new();
+        let read = BufReader::new(stdout).read_line(&mut line);
+        let _ = sender.send(read.map(|_| line));
+    });
+    let line = match first.recv_timeout(START_LIMIT) {
+        Ok(Ok(line)) => line,
+        Ok(Err(e)) => panic!("{bin} writes its address: {e}"),
+        Err(_) => {
+            let _ = child.kill();
+            let _ = child.wait();
+            panic!("{bin} wrote no address within {START_LIMIT:?}")
+        }
+    };
     let addr = line
         .trim()
         .strip_prefix(&format!("{bin} listening on "))
@@ -448,13 +516,10 @@ pub fn write(path: &Path, text: &str) -> String {
     path.to_str().expect("a UTF-8 path").to_string()
 }
 
-/// Runs `program` with `args`; its standard output, or a panic with what
-/// it printed.
+/// Runs `program` with `args` (within [`RUN_LIMIT`]); its standard output,
+/// or a panic with what it printed.
 pub fn check(program: &Path, args: &[&str]) -> String {
-    let output = Command::new(program)
-        .args(args)
-        .output()
-        .unwrap_or_else(|e| panic!("cannot run {}: {e}", program.display()));
+    let output = output_of(Command::new(program).args(args));
     assert!(
         output.status.success(),
         "{} {args:?} failed:\n{}{}",

@@ -10,8 +10,8 @@ use std::time::{Duration, Instant};
 use tweezer_proto::pb;
 use tweezer_proto::pb::hardware_agent_client::HardwareAgentClient;
 use tweezer_system_tests::{
-    AGENT_CONTROL, Running, binary, connect, credentials, learner_status, start_configured_agent,
-    start_learner, write,
+    AGENT_CONTROL, Running, binary, connect, credentials, learner_status, output_of,
+    start_configured_agent, start_learner, write,
 };
 
 /// A small set network that publishes often.
@@ -37,11 +37,11 @@ async fn the_agent_follows_a_live_learner_between_episodes() {
     // Training in bursts between episodes: the twin's real-time loop never
     // shares the two cores with a busy learner.
     let train = |steps: &str| {
-        let streamed = Command::new(binary("actor"))
-            .args(["--config", &actor_config, "run", "--steps", steps])
-            .args(["--security", &credentials().file("actor")])
-            .output()
-            .unwrap();
+        let streamed = output_of(
+            Command::new(binary("actor"))
+                .args(["--config", &actor_config, "run", "--steps", steps])
+                .args(["--security", &credentials().file("actor")]),
+        );
         assert!(
             streamed.status.success(),
             "{}",

@@ -8,7 +8,7 @@ use std::path::{Path, PathBuf};
 use std::process::Command;
 use std::time::Duration;
 use tweezer_system_tests::{
-    Running, binary, check, credentials, python_venv, run, start_learner, stdout_of,
+    Running, binary, check, credentials, output_of, python_venv, run, start_learner, stdout_of,
     wait_for_learner, write,
 };
 
@@ -37,11 +37,11 @@ fn snapshots(dir: &Path, network: &str) -> [PathBuf; 2] {
         &dir.join("actor.toml"),
         &format!("{ENV}[actor]\nlearner = \"{addr}\"\nenvs = 4\nbatch_steps = 100\n"),
     );
-    let streamed = Command::new(binary("actor"))
-        .args(["--config", &actor_config, "run", "--steps", "1600"])
-        .args(["--security", &credentials().file("actor")])
-        .output()
-        .unwrap();
+    let streamed = output_of(
+        Command::new(binary("actor"))
+            .args(["--config", &actor_config, "run", "--steps", "1600"])
+            .args(["--security", &credentials().file("actor")]),
+    );
     stdout_of(&streamed);
     // The steps are in; the learner trains on them until it publishes.
     let runtime = tokio::runtime::Builder::new_current_thread()
@@ -191,14 +191,11 @@ fn python_loads_trained_snapshots_of_both_architectures_and_acts_as_rust_does() 
         let altered = work.join("altered.safetensors");
         std::fs::write(&altered, bytes).unwrap();
         let altered = altered.to_str().unwrap();
-        let refused = Command::new(&python)
-            .args([
-                "-c",
-                "import sys, tweezer_policy; tweezer_policy.load(sys.argv[1])",
-                altered,
-            ])
-            .output()
-            .unwrap();
+        let refused = output_of(Command::new(&python).args([
+            "-c",
+            "import sys, tweezer_policy; tweezer_policy.load(sys.argv[1])",
+            altered,
+        ]));
         let err = String::from_utf8_lossy(&refused.stderr);
         assert!(
             !refused.status.success(),

@@ -379,11 +379,11 @@ fn plaintext_only_as_the_file_says_and_the_cli_names_what_is_wrong() {
     );
 
     // No security file at all.
-    let cli = std::process::Command::new(tweezer_system_tests::binary("tweezer"))
-        .args(["learner", "--learner", &tls_addr, "status"])
-        .env_remove(tweezer_rpc::SECURITY_ENV)
-        .output()
-        .unwrap();
+    let cli = tweezer_system_tests::output_of(
+        std::process::Command::new(tweezer_system_tests::binary("tweezer"))
+            .args(["learner", "--learner", &tls_addr, "status"])
+            .env_remove(tweezer_rpc::SECURITY_ENV),
+    );
     let err = stderr_of_failure(&cli);
     assert!(err.contains("no security file"), "{err}");
     assert!(tls_learner.stop().0.success());

@@ -5,7 +5,7 @@
 use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 use tweezer_system_tests::{
-    TINY_ENV, binary, credentials, free_port, start_learner, status, stop, write,
+    TINY_ENV, binary, credentials, free_port, output_of, start_learner, status, stop, write,
 };
 
 #[test]
@@ -122,11 +122,11 @@ fn an_actor_splits_dense_batches_to_the_learners_message_limit() {
         "--run-dir",
         dir.path().join("run").to_str().unwrap(),
     ]);
-    let output = Command::new(binary("actor"))
-        .args(["--config", &actor_config, "run", "--steps", "8192"])
-        .args(["--security", &credentials().file("actor")])
-        .output()
-        .unwrap();
+    let output = output_of(
+        Command::new(binary("actor"))
+            .args(["--config", &actor_config, "run", "--steps", "8192"])
+            .args(["--security", &credentials().file("actor")]),
+    );
     let stderr = String::from_utf8_lossy(&output.stderr);
     assert!(output.status.success(), "actor failed: {stderr}");
     let report: serde_json::Value = serde_json::from_slice(&output.stdout).unwrap();

@@ -8,8 +8,8 @@ use std::path::Path;
 use std::process::Command;
 use std::time::Duration;
 use tweezer_system_tests::{
-    Running, TINY_ENV, binary, check, credentials, experiment_train, python_venv, signal,
-    start_learner, stdout_of, tiny_train_file, wait_for_learner, write,
+    Running, TINY_ENV, binary, check, credentials, experiment_train, output_of, python_venv,
+    signal, start_learner, stdout_of, tiny_train_file, wait_for_learner, write,
 };
 
 fn json(text: &str) -> serde_json::Value {
@@ -50,13 +50,11 @@ fn tensorboard_reads_the_learners_scalars_live_after_a_sigkill_and_across_a_swee
         &dir.path().join("actor.toml"),
         &format!("{TINY_ENV}[actor]\nlearner = \"{addr}\"\nenvs = 4\nbatch_steps = 50\n"),
     );
-    stdout_of(
-        &Command::new(binary("actor"))
+    stdout_of(&output_of(
+        Command::new(binary("actor"))
             .args(["--config", &actor, "run", "--steps", "1500"])
-            .args(["--security", &credentials().file("actor")])
-            .output()
-            .unwrap(),
-    );
+            .args(["--security", &credentials().file("actor")]),
+    ));
     // The steps are in; the learner trains on them and logs as it goes.
     let runtime = tokio::runtime::Builder::new_current_thread()
         .enable_all()
@@ -99,7 +97,7 @@ fn tensorboard_reads_the_learners_scalars_live_after_a_sigkill_and_across_a_swee
              [sweep]\nseeds = [1, 2]\n",
         ),
     );
-    let trained = experiment_train(&train, &out).output().unwrap();
+    let trained = output_of(&mut experiment_train(&train, &out));
     let outcome = json(&stdout_of(&trained));
     let listed = json(&check(&python, &[script, "logdir", out.to_str().unwrap()]));
     let runs = listed.as_object().unwrap();

@@ -6,8 +6,8 @@ use std::path::Path;
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 use tweezer_system_tests::{
-    TINY_ENV, binary, credentials, experiment_train, free_port, run, signal, start_learner, status,
-    stdout_of, stop, tiny_train_file, wait_for_learner, write,
+    TINY_ENV, binary, credentials, experiment_train, free_port, output_of, run, signal,
+    start_learner, status, stdout_of, stop, tiny_train_file, wait_for_learner, write,
 };
 
 /// Processes killed when a test ends early.
@@ -271,7 +271,7 @@ fn a_sweep_trains_each_run_in_turn_and_reports_them_together() {
              [sweep]\nseeds = [1, 2]\ngamma = [0.8]\n",
         ),
     );
-    let output = experiment_train(&train, &out).output().unwrap();
+    let output = output_of(&mut experiment_train(&train, &out));
     assert!(
         output.status.success(),
         "{}",
