@@ -87,7 +87,8 @@ pub const RUN_LIMIT: Duration = Duration::from_secs(15 * 60);
 
 /// Runs `command` to completion, its output captured. Past [`RUN_LIMIT`]
 /// it is killed and the test fails with what it printed, rather than
-/// hanging the test run.
+/// hanging the test run; so does a run whose output a process it started
+/// still holds open after it exited.
 pub fn output_of(command: &mut Command) -> Output {
     let program = command.get_program().to_string_lossy().into_owned();
     let mut child = command
@@ -96,41 +97,87 @@ pub fn output_of(command: &mut Command) -> Output {
         .stderr(Stdio::piped())
         .spawn()
         .unwrap_or_else(|e| panic!("cannot start {program}: {e}"));
-    let read = |pipe: Option<Box<dyn std::io::Read + Send>>| {
-        std::thread::spawn(move || {
-            let mut bytes = Vec::new();
-            if let Some(mut pipe) = pipe {
-                let _ = pipe.read_to_end(&mut bytes);
-            }
-            bytes
-        })
-    };
-    let stdout = read(child.stdout.take().map(|p| Box::new(p) as _));
-    let stderr = read(child.stderr.take().map(|p| Box::new(p) as _));
+    let stdout = Drained::start(child.stdout.take().expect("stdout is piped"));
+    let stderr = Drained::start(child.stderr.take().expect("stderr is piped"));
     let deadline = Instant::now() + RUN_LIMIT;
-    let status = loop {
+    let status = exit_within(&mut child, RUN_LIMIT);
+    if status.is_none() {
+        let _ = child.kill();
+        let _ = child.wait();
+    }
+    // The pipes close when the last process holding them exits: the child,
+    // or one it started and left running. After a kill, a few seconds.
+    let ends = deadline.max(Instant::now() + Duration::from_secs(5));
+    let closed = stdout.closed_by(ends) && stderr.closed_by(ends);
+    let printed = || format!("{}{}", stdout.text(), stderr.text());
+    match status {
+        None => panic!(
+            "{program} ran past {RUN_LIMIT:?} and was killed:\n{}",
+            printed()
+        ),
+        Some(_) if !closed => panic!(
+            "{program} exited, but a process it started still holds its output open:\n{}",
+            printed()
+        ),
+        Some(status) => Output {
+            status,
+            stdout: stdout.bytes(),
+            stderr: stderr.bytes(),
+        },
+    }
+}
+
+/// A pipe read to its end on a thread of its own, what it gave kept as it
+/// arrives, so that a run that never closes it still shows its output.
+struct Drained {
+    bytes: std::sync::Arc<std::sync::Mutex<Vec<u8>>>,
+    end: std::sync::mpsc::Receiver<()>,
+}
+
+impl Drained {
+    fn start(mut pipe: impl std::io::Read + Send + 'static) -> Self {
+        let bytes = std::sync::Arc::new(std::sync::Mutex::new(Vec::new()));
+        let (sender, end) = std::sync::mpsc::channel();
+        let kept = bytes.clone();
+        std::thread::spawn(move || {
+            let mut chunk = [0; 8192];
+            while let Ok(n @ 1..) = pipe.read(&mut chunk) {
+                kept.lock()
+                    .expect("unpoisoned")
+                    .extend_from_slice(&chunk[..n]);
+            }
+            let _ = sender.send(());
+        });
+        Self { bytes, end }
+    }
+
+    /// Whether the pipe closed by `deadline`.
+    fn closed_by(&self, deadline: Instant) -> bool {
+        let left = deadline.saturating_duration_since(Instant::now());
+        self.end.recv_timeout(left).is_ok()
+    }
+
+    fn bytes(&self) -> Vec<u8> {
+        self.bytes.lock().expect("unpoisoned").clone()
+    }
+
+    fn text(&self) -> String {
+        String::from_utf8_lossy(&self.bytes()).into_owned()
+    }
+}
+
+/// `child`'s exit status, waited for up to `limit`; `None` if it still
+/// runs then.
+fn exit_within(child: &mut Child, limit: Duration) -> Option<ExitStatus> {
+    let deadline = Instant::now() + limit;
+    loop {
         if let Some(status) = child.try_wait().expect("wait works") {
-            break Some(status);
+            return Some(status);
         }
-        if Instant::now() > deadline {
-            let _ = child.kill();
-            let _ = child.wait();
-            break None;
+        if Instant::now() >= deadline {
+            return None;
         }
         std::thread::sleep(Duration::from_millis(20));
-    };
-    let (stdout, stderr) = (stdout.join().unwrap(), stderr.join().unwrap());
-    let Some(status) = status else {
-        panic!(
-            "{program} ran past {RUN_LIMIT:?} and was killed:\n{}{}",
-            String::from_utf8_lossy(&stdout),
-            String::from_utf8_lossy(&stderr)
-        )
-    };
-    Output {
-        status,
-        stdout,
-        stderr,
     }
 }
 
@@ -420,11 +467,10 @@ pub fn signal(child: &Child, name: &str) {
 /// standard output.
 pub fn stop(mut child: Child) -> (ExitStatus, String) {
     signal(&child, "TERM");
-    let deadline = Instant::now() + Duration::from_secs(120);
-    while child.try_wait().expect("wait works").is_none() {
-        assert!(Instant::now() < deadline, "the process did not stop");
-        std::thread::sleep(Duration::from_millis(50));
-    }
+    assert!(
+        exit_within(&mut child, Duration::from_secs(120)).is_some(),
+        "the process did not stop"
+    );
     let output = child.wait_with_output().expect("output is readable");
     (
         output.status,
