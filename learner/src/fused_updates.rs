@@ -209,6 +209,24 @@ impl FusedAdam {
     }
 }
 
+/// `grad` laid out in its logical order if it has a dimension of size one.
+///
+/// Burn 0.22.1's fused kernels (wgpu, cuda) compute wrong, run-to-run
+/// varying elements when one input is a permuted view whose size-one
+/// dimension has the innermost stride: a convolution's weight gradient
+/// comes back as an NCHW view of NHWC memory, and for the first
+/// convolution (one input channel) it can be `[32, 1, 8, 8]` with strides
+/// `[64, 1, 8, 1]`. Burn's Adam step over such a gradient got about 88 %
+/// of the weights wrong (docs/configuration.md, "Known fault"). Reshaping
+/// through one dimension lays it out afresh; the values are the same.
+fn settled<const D: usize>(grad: Tensor<D>) -> Tensor<D> {
+    let dims = grad.dims();
+    if D < 2 || !dims.contains(&1) {
+        return grad;
+    }
+    grad.reshape([dims.iter().product::<usize>()]).reshape(dims)
+}
+
 impl Optimizer for FusedAdam {
     type State<const D: usize> = AdamState<D>;
 
@@ -220,7 +238,7 @@ impl Optimizer for FusedAdam {
         state: Option<Self::State<D>>,
     ) -> (Tensor<D>, Option<Self::State<D>>) {
         if !is_cpu_backend(&tensor.device()) {
-            return self.burn.step(lr, tensor, grad, state);
+            return self.burn.step(lr, tensor, settled(grad), state);
         }
         let (time, moment_1, moment_2) = match state {
             Some(AdamState { momentum }) => {
