@@ -39,17 +39,17 @@ fn binaries() -> &'static HashMap<String, PathBuf> {
     BINARIES.get_or_init(|| {
         let cargo = std::env::var("CARGO").unwrap_or_else(|_| "cargo".into());
         let manifest = Path::new(env!("CARGO_MANIFEST_DIR")).join("../Cargo.toml");
-        let output = Command::new(cargo)
-            .args([
-                "build",
-                "--workspace",
-                "--all-targets",
-                "--message-format=json",
-            ])
-            .arg("--manifest-path")
-            .arg(manifest)
-            .output()
-            .expect("cargo runs");
+        let output = output_of(
+            Command::new(cargo)
+                .args([
+                    "build",
+                    "--workspace",
+                    "--all-targets",
+                    "--message-format=json",
+                ])
+                .arg("--manifest-path")
+                .arg(manifest),
+        );
         assert!(
             output.status.success(),
             "cargo build failed:\n{}",
@@ -91,38 +91,46 @@ pub const RUN_LIMIT: Duration = Duration::from_secs(15 * 60);
 /// still holds open after it exited.
 pub fn output_of(command: &mut Command) -> Output {
     let program = command.get_program().to_string_lossy().into_owned();
-    let mut child = command
+    let child = command
         .stdin(Stdio::null())
         .stdout(Stdio::piped())
         .stderr(Stdio::piped())
         .spawn()
         .unwrap_or_else(|e| panic!("cannot start {program}: {e}"));
-    let stdout = Drained::start(child.stdout.take().expect("stdout is piped"));
-    let stderr = Drained::start(child.stderr.take().expect("stderr is piped"));
-    let deadline = Instant::now() + RUN_LIMIT;
-    let status = exit_within(&mut child, RUN_LIMIT);
+    output_within(child, RUN_LIMIT, &program)
+}
+
+/// `child`'s exit status and the output of its piped streams, waited for
+/// up to `limit`. Past it the process (`what`) is killed and the test
+/// fails with what it printed; so does a process that exited while one it
+/// started still holds its output open.
+pub fn output_within(mut child: Child, limit: Duration, what: &str) -> Output {
+    let stdout = child.stdout.take().map(Drained::start);
+    let stderr = child.stderr.take().map(Drained::start);
+    let status = exit_within(&mut child, limit);
     if status.is_none() {
         let _ = child.kill();
         let _ = child.wait();
     }
     // The pipes close when the last process holding them exits: the child,
     // or one it started and left running. After a kill, a few seconds.
-    let ends = deadline.max(Instant::now() + Duration::from_secs(5));
-    let closed = stdout.closed_by(ends) && stderr.closed_by(ends);
-    let printed = || format!("{}{}", stdout.text(), stderr.text());
+    let ends = Instant::now() + Duration::from_secs(5);
+    let closed = [&stdout, &stderr]
+        .iter()
+        .all(|pipe| pipe.as_ref().is_none_or(|pipe| pipe.closed_by(ends)));
+    let text = |pipe: &Option<Drained>| pipe.as_ref().map(Drained::text).unwrap_or_default();
+    let printed = || format!("{}{}", text(&stdout), text(&stderr));
+    let bytes = |pipe: &Option<Drained>| pipe.as_ref().map(Drained::bytes).unwrap_or_default();
     match status {
-        None => panic!(
-            "{program} ran past {RUN_LIMIT:?} and was killed:\n{}",
-            printed()
-        ),
+        None => panic!("{what} ran past {limit:?} and was killed:\n{}", printed()),
         Some(_) if !closed => panic!(
-            "{program} exited, but a process it started still holds its output open:\n{}",
+            "{what} exited, but a process it started still holds its output open:\n{}",
             printed()
         ),
         Some(status) => Output {
             status,
-            stdout: stdout.bytes(),
-            stderr: stderr.bytes(),
+            stdout: bytes(&stdout),
+            stderr: bytes(&stderr),
         },
     }
 }
@@ -463,15 +471,11 @@ pub fn signal(child: &Child, name: &str) {
     assert!(sent.success(), "kill -{name} failed");
 }
 
-/// SIGTERM, then (within two minutes) the exit status and what is left of
-/// standard output.
-pub fn stop(mut child: Child) -> (ExitStatus, String) {
+/// SIGTERM, then (within two minutes, [`output_within`]) the exit status
+/// and what is left of standard output.
+pub fn stop(child: Child) -> (ExitStatus, String) {
     signal(&child, "TERM");
-    assert!(
-        exit_within(&mut child, Duration::from_secs(120)).is_some(),
-        "the process did not stop"
-    );
-    let output = child.wait_with_output().expect("output is readable");
+    let output = output_within(child, Duration::from_secs(120), "the stopped process");
     (
         output.status,
         String::from_utf8(output.stdout).expect("utf-8 output"),

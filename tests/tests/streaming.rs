@@ -5,7 +5,8 @@
 use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 use tweezer_system_tests::{
-    TINY_ENV, binary, credentials, free_port, output_of, start_learner, status, stop, write,
+    TINY_ENV, binary, credentials, free_port, output_of, output_within, start_learner, status,
+    stop, write,
 };
 
 #[test]
@@ -41,7 +42,7 @@ fn an_actor_streams_through_a_learner_restart_without_losing_or_repeating_steps(
         "--run-dir",
         run_dir.to_str().unwrap(),
     ]);
-    let mut actor = Command::new(binary("actor"))
+    let actor = Command::new(binary("actor"))
         .args(["--config", &actor_config, "run", "--steps", "6000"])
         .args(["--security", &credentials().file("actor")])
         .stdout(Stdio::piped())
@@ -59,17 +60,9 @@ fn an_actor_streams_through_a_learner_restart_without_losing_or_repeating_steps(
     std::thread::sleep(Duration::from_millis(300));
     let (learner, _) = start_learner(&["--resume", run_dir.to_str().unwrap()]);
 
-    let deadline = Instant::now() + Duration::from_secs(240);
-    let exit = loop {
-        if let Some(exit) = actor.try_wait().unwrap() {
-            break exit;
-        }
-        assert!(Instant::now() < deadline, "the actor did not finish");
-        std::thread::sleep(Duration::from_millis(100));
-    };
-    let output = actor.wait_with_output().unwrap();
+    let output = output_within(actor, Duration::from_secs(240), "the actor");
     assert!(
-        exit.success(),
+        output.status.success(),
         "actor failed: {}",
         String::from_utf8_lossy(&output.stderr)
     );

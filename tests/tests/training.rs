@@ -6,8 +6,8 @@ use std::path::Path;
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 use tweezer_system_tests::{
-    TINY_ENV, binary, credentials, experiment_train, free_port, output_of, run, signal,
-    start_learner, status, stdout_of, stop, tiny_train_file, wait_for_learner, write,
+    TINY_ENV, binary, credentials, experiment_train, free_port, output_of, output_within, run,
+    signal, start_learner, status, stdout_of, stop, tiny_train_file, wait_for_learner, write,
 };
 
 /// Processes killed when a test ends early.
@@ -215,13 +215,11 @@ fn sigint_stops_a_one_command_run_with_a_loadable_final_checkpoint() {
         std::thread::sleep(Duration::from_millis(100));
     }
     signal(&procs.0[0], "INT");
-    let mut child = procs.0.remove(0);
-    let deadline = Instant::now() + Duration::from_secs(180);
-    while child.try_wait().unwrap().is_none() {
-        assert!(Instant::now() < deadline, "the run did not stop");
-        std::thread::sleep(Duration::from_millis(100));
-    }
-    let output = child.wait_with_output().unwrap();
+    let output = output_within(
+        procs.0.remove(0),
+        Duration::from_secs(180),
+        "the interrupted run",
+    );
     assert!(
         output.status.success(),
         "{}",
