@@ -103,8 +103,9 @@ pub fn output_of(command: &mut Command) -> Output {
 /// `child`'s exit status and the output of its piped streams, waited for
 /// up to `limit`. Past it the process (`what`) is killed and the test
 /// fails with what it printed; so does a process that exited while one it
-/// started still holds its output open.
+/// started still holds its output open at the limit.
 pub fn output_within(mut child: Child, limit: Duration, what: &str) -> Output {
+    let deadline = Instant::now() + limit;
     let stdout = child.stdout.take().map(Drained::start);
     let stderr = child.stderr.take().map(Drained::start);
     let status = exit_within(&mut child, limit);
@@ -114,7 +115,7 @@ pub fn output_within(mut child: Child, limit: Duration, what: &str) -> Output {
     }
     // The pipes close when the last process holding them exits: the child,
     // or one it started and left running. After a kill, a few seconds.
-    let ends = Instant::now() + Duration::from_secs(5);
+    let ends = deadline.max(Instant::now() + Duration::from_secs(5));
     let closed = [&stdout, &stderr]
         .iter()
         .all(|pipe| pipe.as_ref().is_none_or(|pipe| pipe.closed_by(ends)));
