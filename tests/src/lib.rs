@@ -108,7 +108,7 @@ pub fn output_within(mut child: Child, limit: Duration, what: &str) -> Output {
     let deadline = Instant::now() + limit;
     let stdout = child.stdout.take().map(Drained::start);
     let stderr = child.stderr.take().map(Drained::start);
-    let status = exit_within(&mut child, limit);
+    let status = exit_by(&mut child, deadline);
     if status.is_none() {
         let _ = child.kill();
         let _ = child.wait();
@@ -175,10 +175,9 @@ impl Drained {
     }
 }
 
-/// `child`'s exit status, waited for up to `limit`; `None` if it still
+/// `child`'s exit status, waited for until `deadline`; `None` if it still
 /// runs then.
-fn exit_within(child: &mut Child, limit: Duration) -> Option<ExitStatus> {
-    let deadline = Instant::now() + limit;
+fn exit_by(child: &mut Child, deadline: Instant) -> Option<ExitStatus> {
     loop {
         if let Some(status) = child.try_wait().expect("wait works") {
             return Some(status);
