@@ -376,7 +376,7 @@ fn wgpu_device() -> Result<Device, ConfigError> {
     opened.clone().map_err(|answers| ConfigError::Invalid {
         field: "learner.device".into(),
         reason: format!(
-            "`wgpu` found no adapter ({answers}); install the GPU's Vulkan driver (or Mesa's software one, Debian's mesa-vulkan-drivers), or choose `flex`"
+            "`wgpu` found no adapter ({answers}); install the GPU's Vulkan driver and the Vulkan loader (NVIDIA's driver also needs libglvnd's libraries: Debian's libvulkan1, libglvnd0, libglx0 and libegl1), or Mesa's software driver (Debian's mesa-vulkan-drivers), or choose `flex`"
         ),
     })
 }
