@@ -178,7 +178,11 @@ fn watching_the_learner_draws_its_trends_under_the_table() {
         .unwrap();
     std::thread::sleep(std::time::Duration::from_secs(3));
     let _ = watch.kill();
-    let out = watch.wait_with_output().unwrap();
+    let out = tweezer_system_tests::output_within(
+        watch,
+        std::time::Duration::from_secs(30),
+        "tweezer status --watch",
+    );
     let text = String::from_utf8_lossy(&out.stdout);
     // Every poll prints the table, then one line per trend; the rates need
     // two polls.
