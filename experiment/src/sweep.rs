@@ -209,5 +209,14 @@ mod tests {
             err.contains("image 40x40") && err.contains("env.image"),
             "{err}"
         );
+        let sweep = SweepConfig {
+            image: vec![[5, 4]],
+            ..Default::default()
+        };
+        let err = sweep.runs(&base).unwrap_err().to_string();
+        assert!(
+            err.contains("image 5x4") && err.contains("too small for the paper network"),
+            "{err}"
+        );
     }
 }

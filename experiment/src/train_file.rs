@@ -104,6 +104,7 @@ impl TrainFile {
     pub fn validate(&self) -> Result<(), ConfigError> {
         self.env.validate().map_err(|e| e.in_table("env"))?;
         self.learner.validate().map_err(|e| e.in_table("learner"))?;
+        self.learner.network.check_fits(&self.env)?;
         if let Some(key) = SET_PER_ACTOR.iter().find(|k| self.actor.contains_key(**k)) {
             return Err(ConfigError::Invalid {
                 field: format!("actor.{key}"),

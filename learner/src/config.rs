@@ -37,7 +37,8 @@ impl LearnerFile {
     /// Checks every field; the error names the first one out of range.
     pub fn validate(&self) -> Result<(), ConfigError> {
         self.env.validate().map_err(|e| e.in_table("env"))?;
-        self.learner.validate().map_err(|e| e.in_table("learner"))
+        self.learner.validate().map_err(|e| e.in_table("learner"))?;
+        self.learner.network.check_fits(&self.env)
     }
 
     /// The configuration as TOML, every default written out.
@@ -222,6 +223,19 @@ impl NetworkConfig {
                 max_spheres: s.max_spheres,
                 fov_px: env.fov_px,
             }),
+        }
+    }
+
+    /// Checks that the network takes `env`'s images (the paper network's
+    /// convolutions need a few pixels each way); the error names
+    /// `env.image`.
+    pub fn check_fits(&self, env: &EnvConfig) -> Result<(), ConfigError> {
+        match self {
+            Self::Paper => self
+                .architecture(env)
+                .validate()
+                .map_err(|e| ConfigError::invalid("env.image", e.to_string())),
+            Self::Set(_) => Ok(()),
         }
     }
 

@@ -55,11 +55,12 @@ fn wgpu_turn() -> Option<std::sync::MutexGuard<'static, ()>> {
 }
 
 fn env() -> EnvConfig {
+    env_at(40, 32)
+}
+
+fn env_at(width: u32, height: u32) -> EnvConfig {
     EnvConfig {
-        image: ImageConfig {
-            width: 40,
-            height: 32,
-        },
+        image: ImageConfig { width, height },
         ..EnvConfig::default()
     }
 }
@@ -85,12 +86,12 @@ fn replay(env: &EnvConfig) -> Replay {
 /// side on both of rayon's workers; with `hop`, each wgpu step runs on a
 /// thread of its own too.
 fn updates_on_both<N: Networks>(
+    env: &EnvConfig,
     networks: N,
     updates: usize,
     hop: bool,
 ) -> Vec<(UpdateStats, UpdateStats)> {
-    let env = env();
-    let replay = replay(&env);
+    let replay = replay(env);
     let config = Td3Config {
         policy_noise: 0.0,
         ..Td3Config::default()
@@ -131,13 +132,23 @@ fn check(pairs: &[(UpdateStats, UpdateStats)]) {
 fn cnn_updates_on_wgpu_agree_with_the_cpu() {
     let Some(_turn) = wgpu_turn() else { return };
     let networks = PaperNetworks::new(tweezer_gym::Renderer::for_config(&env()).unwrap());
-    check(&updates_on_both(networks, 4, false));
+    check(&updates_on_both(&env(), networks, 4, false));
+}
+
+/// At the smallest image the paper network takes, its last feature maps
+/// are one pixel: views with several size-one dimensions.
+#[test]
+fn cnn_updates_on_wgpu_agree_with_the_cpu_at_the_smallest_image() {
+    let Some(_turn) = wgpu_turn() else { return };
+    let env = env_at(10, 8);
+    let networks = PaperNetworks::new(tweezer_gym::Renderer::for_config(&env).unwrap());
+    check(&updates_on_both(&env, networks, 4, false));
 }
 
 #[test]
 fn set_network_updates_on_wgpu_agree_with_the_cpu() {
     let Some(_turn) = wgpu_turn() else { return };
-    check(&updates_on_both(set_networks(), 4, false));
+    check(&updates_on_both(&env(), set_networks(), 4, false));
 }
 
 /// TD3 updates on wgpu agree with the CPU's when each step runs on a
@@ -166,7 +177,7 @@ fn updates_on_wgpu_agree_when_each_step_runs_on_another_thread() {
 #[ignore = "run by updates_on_wgpu_agree_when_each_step_runs_on_another_thread"]
 fn steps_on_threads_of_their_own() {
     let Some(_turn) = wgpu_turn() else { return };
-    check(&updates_on_both(set_networks(), 6, true));
+    check(&updates_on_both(&env(), set_networks(), 6, true));
 }
 
 /// Adam on wgpu agrees with the CPU's over a gradient laid out as Burn's

@@ -198,6 +198,12 @@ impl Architecture {
                 return Err(ArchitectureError::Size { name, value });
             }
         }
+        if let Self::Paper { height, width } = *self {
+            let min = crate::encoder::min_image_side();
+            if height < min || width < min {
+                return Err(ArchitectureError::ImageTooSmall { height, width, min });
+            }
+        }
         Ok(())
     }
 }
@@ -233,5 +239,17 @@ pub enum ArchitectureError {
         name: &'static str,
         /// Its value.
         value: usize,
+    },
+    /// Images too small for the paper network's convolutions.
+    #[error(
+        "images of {width} x {height} pixels are too small for the paper network: its convolutions need at least {min} each way"
+    )]
+    ImageTooSmall {
+        /// Image height in pixels.
+        height: usize,
+        /// Image width in pixels.
+        width: usize,
+        /// The shortest side the convolutions take.
+        min: usize,
     },
 }

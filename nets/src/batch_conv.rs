@@ -293,6 +293,11 @@ fn im2col(cols: &mut [f32], x: &[f32], g: Geometry, taps: &[Tap], images: Range<
                     // p: the rows ys are one block of the plane, shifted,
                     // whose columns outside xs are then zeroed again.
                     let (ys, xs) = (tap.ys.clone(), tap.xs.clone());
+                    if ys.is_empty() || xs.is_empty() {
+                        // A tap that reads only padding (maps narrower
+                        // than the kernel's reach).
+                        continue;
+                    }
                     let shift = (ky * g.width + kx) as isize - (g.padding * (g.width + 1)) as isize;
                     let (start, end) = (ys.start * g.width, ys.end * g.width);
                     let skip = (-(start as isize + shift)).max(0) as usize;
@@ -774,6 +779,23 @@ mod tests {
         check(Input::Dense, 3, [32, 64], [8, 10], 4, 2, 1);
         check(Input::Dense, 3, [64, 64], [4, 5], 3, 1, 1);
         check(Input::Dense, 2, [1, 32], [37, 29], 8, 4, 2);
+    }
+
+    #[test]
+    fn feature_maps_one_pixel_wide_or_high_match_too() {
+        // The paper's layers at the smallest images of the field's aspect
+        // (10 x 8 and 15 x 12): the second and third layers' maps are 1 x 1.
+        for size in [[8, 10], [12, 15]] {
+            check(Input::Dense, 3, [1, 32], size, 8, 4, 2);
+            check(Input::Sparse { grad: false }, 3, [1, 32], size, 8, 4, 2);
+        }
+        check(Input::Dense, 3, [32, 64], [2, 2], 4, 2, 1);
+        check(Input::Dense, 3, [32, 64], [3, 3], 4, 2, 1);
+        check(Input::Dense, 3, [64, 64], [1, 1], 3, 1, 1);
+        // One row or one column only.
+        check(Input::Dense, 2, [4, 8], [1, 5], 3, 1, 1);
+        check(Input::Dense, 2, [4, 8], [6, 1], 3, 1, 1);
+        check(Input::Dense, 2, [4, 8], [2, 7], 4, 2, 1);
     }
 
     #[test]

@@ -34,16 +34,37 @@ pub struct EncoderConfig {
     pub features: usize,
 }
 
-/// Output size of a convolution along one axis.
-fn conv_out(size: usize, kernel: usize, stride: usize, padding: usize) -> usize {
-    (size + 2 * padding).saturating_sub(kernel) / stride + 1
+/// The convolutions as (input channels, output channels, kernel, stride,
+/// padding), in order.
+const CONVOLUTIONS: [(usize, usize, usize, usize, usize); 3] =
+    [(1, 32, 8, 4, 2), (32, 64, 4, 2, 1), (64, 64, 3, 1, 1)];
+
+/// Feature-map side after the convolutions of an input `side` pixels long,
+/// or `None` where a kernel is longer than its padded input.
+fn conv_side(side: usize) -> Option<usize> {
+    CONVOLUTIONS
+        .iter()
+        .try_fold(side, |size, &(_, _, kernel, stride, padding)| {
+            (size + 2 * padding)
+                .checked_sub(kernel)
+                .map(|room| room / stride + 1)
+        })
+}
+
+/// The shortest image side the convolutions take (8 pixels: the second
+/// kernel needs two columns of the first's output).
+pub fn min_image_side() -> usize {
+    (1..)
+        .find(|&side| conv_side(side).is_some())
+        .expect("a side fits")
 }
 
 impl EncoderConfig {
-    /// Feature-map size after the three convolutions: (channels, height, width).
+    /// Feature-map size after the three convolutions: (channels, height,
+    /// width); a side shorter than [`min_image_side`] counts as 0.
     pub fn conv_output(&self) -> [usize; 3] {
-        let side = |s| conv_out(conv_out(conv_out(s, 8, 4, 2), 4, 2, 1), 3, 1, 1);
-        [64, side(self.height), side(self.width)]
+        let side = |s| conv_side(s).unwrap_or(0);
+        [CONVOLUTIONS[2].1, side(self.height), side(self.width)]
     }
 
     /// Length of the flattened feature map: 81,920 at 256 x 320.
@@ -53,19 +74,21 @@ impl EncoderConfig {
 
     /// An encoder with freshly initialised weights on `device`.
     pub fn init(&self, device: &Device) -> Encoder {
-        let conv = |channels: [usize; 2], kernel: usize, stride: usize, pad: usize| {
-            Conv2dConfig::new(channels, [kernel, kernel])
+        let conv = |layer: usize| {
+            let (inputs, outputs, kernel, stride, pad) = CONVOLUTIONS[layer];
+            Conv2dConfig::new([inputs, outputs], [kernel, kernel])
                 .with_stride([stride, stride])
                 .with_padding(PaddingConfig2d::Explicit(pad, pad, pad, pad))
                 .init(device)
         };
+        let norm = |layer: usize| BatchNormConfig::new(CONVOLUTIONS[layer].1).init(device);
         Encoder {
-            conv1: conv([1, 32], 8, 4, 2),
-            norm1: BatchNormConfig::new(32).init(device),
-            conv2: conv([32, 64], 4, 2, 1),
-            norm2: BatchNormConfig::new(64).init(device),
-            conv3: conv([64, 64], 3, 1, 1),
-            norm3: BatchNormConfig::new(64).init(device),
+            conv1: conv(0),
+            norm1: norm(0),
+            conv2: conv(1),
+            norm2: norm(1),
+            conv3: conv(2),
+            norm3: norm(2),
             fc: LinearConfig::new(self.flatten_size(), self.features).init(device),
         }
     }
@@ -132,5 +155,10 @@ mod tests {
         assert_eq!(paper.flatten_size(), 81_920);
         assert_eq!(EncoderConfig::new(64, 80).conv_output(), [64, 8, 10]);
         assert_eq!(EncoderConfig::new(128, 160).flatten_size(), 64 * 16 * 20);
+        assert_eq!(EncoderConfig::new(8, 10).conv_output(), [64, 1, 1]);
+        assert_eq!(min_image_side(), 8);
+        // 7 pixels: the first map is one column, the second kernel's 4
+        // overhang its 3 padded ones.
+        assert_eq!(EncoderConfig::new(7, 10).conv_output(), [64, 0, 1]);
     }
 }
