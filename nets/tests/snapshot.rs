@@ -174,6 +174,11 @@ fn bad_metadata_and_corruption_are_refused() {
         .unwrap_err()
         .to_string();
     assert!(err.contains("`pooling`"), "{err}");
+    // Images the paper network's convolutions cannot take.
+    let (_, paper_bytes) = snapshot(&paper(80, 64), &device);
+    let tiny = with_metadata(&with_metadata(&paper_bytes, "height", "4"), "width", "5");
+    let err = load(&tiny).unwrap_err().to_string();
+    assert!(err.contains("too small for the paper network"), "{err}");
     // Metadata that agrees with itself but not with the weights.
     let err = load(&with_metadata(&bytes, "head_hidden", "32"))
         .unwrap_err()
