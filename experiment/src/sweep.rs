@@ -200,23 +200,16 @@ mod tests {
     #[test]
     fn an_invalid_value_names_the_run() {
         let base = TrainFile::preset("quick").unwrap();
-        let sweep = SweepConfig {
-            image: vec![[40, 40]],
-            ..Default::default()
-        };
-        let err = sweep.runs(&base).unwrap_err().to_string();
-        assert!(
-            err.contains("image 40x40") && err.contains("env.image"),
-            "{err}"
-        );
-        let sweep = SweepConfig {
-            image: vec![[5, 4]],
-            ..Default::default()
-        };
-        let err = sweep.runs(&base).unwrap_err().to_string();
-        assert!(
-            err.contains("image 5x4") && err.contains("too small for the paper network"),
-            "{err}"
-        );
+        for (image, run, reason) in [
+            ([40, 40], "image 40x40", "env.image"),
+            ([5, 4], "image 5x4", "too small for the paper network"),
+        ] {
+            let sweep = SweepConfig {
+                image: vec![image],
+                ..Default::default()
+            };
+            let err = sweep.runs(&base).unwrap_err().to_string();
+            assert!(err.contains(run) && err.contains(reason), "{err}");
+        }
     }
 }

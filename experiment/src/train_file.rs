@@ -102,9 +102,7 @@ impl TrainFile {
 
     /// Checks every field; the error names the first one out of range.
     pub fn validate(&self) -> Result<(), ConfigError> {
-        self.env.validate().map_err(|e| e.in_table("env"))?;
-        self.learner.validate().map_err(|e| e.in_table("learner"))?;
-        self.learner.network.check_fits(&self.env)?;
+        tweezer_learner::config::validate_tables(&self.env, &self.learner)?;
         if let Some(key) = SET_PER_ACTOR.iter().find(|k| self.actor.contains_key(**k)) {
             return Err(ConfigError::Invalid {
                 field: format!("actor.{key}"),

@@ -36,15 +36,21 @@ impl LearnerFile {
 
     /// Checks every field; the error names the first one out of range.
     pub fn validate(&self) -> Result<(), ConfigError> {
-        self.env.validate().map_err(|e| e.in_table("env"))?;
-        self.learner.validate().map_err(|e| e.in_table("learner"))?;
-        self.learner.network.check_fits(&self.env)
+        validate_tables(&self.env, &self.learner)
     }
 
     /// The configuration as TOML, every default written out.
     pub fn to_toml(&self) -> String {
         toml::to_string(self).expect("every config field is TOML-representable")
     }
+}
+
+/// Checks a file's `[env]` and `[learner]` tables and that the network
+/// takes the env's images; the error names the first field out of range.
+pub fn validate_tables(env: &EnvConfig, learner: &LearnerConfig) -> Result<(), ConfigError> {
+    env.validate().map_err(|e| e.in_table("env"))?;
+    learner.validate().map_err(|e| e.in_table("learner"))?;
+    learner.network.check_fits(env)
 }
 
 /// How the learner serves, trains and keeps its state.
@@ -229,7 +235,7 @@ impl NetworkConfig {
     /// Checks that the network takes `env`'s images (the paper network's
     /// convolutions need a few pixels each way); the error names
     /// `env.image`.
-    pub fn check_fits(&self, env: &EnvConfig) -> Result<(), ConfigError> {
+    fn check_fits(&self, env: &EnvConfig) -> Result<(), ConfigError> {
         match self {
             Self::Paper => self
                 .architecture(env)
