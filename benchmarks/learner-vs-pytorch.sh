@@ -1,10 +1,15 @@
 #!/usr/bin/env bash
 # The learner's TD3 update next to PyTorch's, in one run on this machine:
 # `learner bench` and benchmarks/pytorch/td3_update.py alternate, at 40 x 32
-# and 320 x 256, batch 32; prints the medians and their ratio.
+# and 320 x 256, batch 32; prints the medians and their ratio, and each
+# process's peak resident memory.
 #
-#   benchmarks/learner-vs-pytorch.sh [--reps N] [--updates N] [--device D] [--json]
+#   benchmarks/learner-vs-pytorch.sh [--reps N] [--updates N] [--device D]
+#       [--replay-capacity N] [--json]
 #
+# The learner's replay holds 20,000 transitions unless --replay-capacity
+# says otherwise (the paper's 1,050,000 for the memory goal); PyTorch's
+# process holds none.
 # --device wgpu or cuda runs ours on that learner.device and PyTorch on CUDA.
 # PyTorch comes from the pinned benchmarks/pytorch/requirements.txt, into a
 # virtual environment made on first use ($BENCH_VENV, default

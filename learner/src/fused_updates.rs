@@ -17,7 +17,7 @@ use burn::tensor::{Device, Tensor};
 use burn_flex::FlexTensor;
 use pulp::{Arch, Simd, WithSimd};
 use rayon::prelude::*;
-use tweezer_nets::is_cpu_backend;
+use tweezer_nets::{FactoredGradient, is_cpu_backend};
 
 /// Elements per parallel task.
 const CHUNK: usize = 1 << 14;
@@ -118,12 +118,46 @@ impl FusedUpdates for Flex {
         let grad = grad.to_contiguous();
         let g = grad.storage::<f32>();
         let arch = Arch::new();
-        p.storage_mut::<f32>()
-            .par_chunks_mut(CHUNK)
-            .zip(m.storage_mut::<f32>().par_chunks_mut(CHUNK))
-            .zip(v.storage_mut::<f32>().par_chunks_mut(CHUNK))
-            .zip(g.par_chunks(CHUNK))
-            .for_each(|(((p, m), v), g)| arch.dispatch(AdamChunk { s, p, m, v, g }));
+        let shapes = (
+            p.layout().shape().as_slice(),
+            grad.layout().shape().as_slice(),
+        );
+        let factored = match shapes {
+            (&[rows, columns], &[grad_rows, grad_columns]) => {
+                FactoredGradient::of(g, [grad_rows, grad_columns], [rows, columns])
+                    .map(|f| f.unwrap_or_else(|e| panic!("Adam: {e}")))
+            }
+            _ => None,
+        };
+        let (pm, mm, vm) = (
+            p.storage_mut::<f32>(),
+            m.storage_mut::<f32>(),
+            v.storage_mut::<f32>(),
+        );
+        match factored {
+            None => pm
+                .par_chunks_mut(CHUNK)
+                .zip(mm.par_chunks_mut(CHUNK))
+                .zip(vm.par_chunks_mut(CHUNK))
+                .zip(g.par_chunks(CHUNK))
+                .for_each(|(((p, m), v), g)| arch.dispatch(AdamChunk { s, p, m, v, g })),
+            // Whole rows of the gradient per task, expanded into a
+            // buffer of the task's thread beside the rows they update.
+            Some(factored) => {
+                let rows = (CHUNK / factored.outputs().max(1)).max(1);
+                let chunk = rows * factored.outputs().max(1);
+                pm.par_chunks_mut(chunk)
+                    .zip(mm.par_chunks_mut(chunk))
+                    .zip(vm.par_chunks_mut(chunk))
+                    .enumerate()
+                    .for_each_init(Vec::new, |g, (task, ((p, m), v))| {
+                        g.resize(g.len().max(p.len()), 0.0);
+                        let g = &mut g[..p.len()];
+                        factored.rows_into(task * rows, g);
+                        arch.dispatch(AdamChunk { s, p, m, v, g })
+                    });
+            }
+        }
         (p, m, v)
     }
 }
@@ -305,6 +339,49 @@ mod tests {
         let fused = train(ModuleOptimizer::from(FusedAdam::new(1e-8)));
         for (b, f) in burn.iter().zip(&fused) {
             f.assert_approx_eq::<f32>(b, burn::tensor::Tolerance::rel_abs(1e-6, 1e-7));
+        }
+    }
+
+    /// Steps over a factored weight gradient ([`FactoredGradient`], the
+    /// CPU's for the encoder's linear layer) and over the same gradient
+    /// expanded by Burn's matrix product: the same weights and moments, to
+    /// 1e-6 (the two sum the batch in different orders), over two steps
+    /// (the first from fresh moments), on shapes split into one and into
+    /// several tasks.
+    #[test]
+    fn steps_over_a_factored_gradient_match_steps_over_the_dense_one() {
+        let device = Device::flex();
+        device.seed(5);
+        let normal = Distribution::Normal(0.0, 1.0);
+        for (batch, inputs, outputs) in [(5, 300, 70), (32, 1000, 33), (3, 7, 512), (1, 2, 3)] {
+            let weight = Tensor::<2>::random([inputs, outputs], normal, &device);
+            let factors: Vec<_> = (0..2)
+                .map(|_| {
+                    let x = Tensor::<2>::random([batch, inputs], normal, &device);
+                    let dy = Tensor::<2>::random([batch, outputs], normal, &device);
+                    let dense = x.clone().transpose().matmul(dy.clone());
+                    let mut last = vec![0f32; inputs + outputs];
+                    last[0] = 1.0;
+                    let last =
+                        Tensor::from_data(TensorData::new(last, [1, inputs + outputs]), &device);
+                    let factored = Tensor::cat(vec![Tensor::cat(vec![x, dy], 1), last], 0);
+                    (dense, factored)
+                })
+                .collect();
+            let optim = FusedAdam::new(1e-8);
+            let train = |factored: bool| {
+                let (mut w, mut state) = (weight.clone(), None);
+                for (dense, f) in &factors {
+                    let grad = if factored { f.clone() } else { dense.clone() };
+                    (w, state) = optim.step(1e-2, w, grad, state);
+                }
+                let momentum = state.unwrap().momentum;
+                [w, momentum.moment_1, momentum.moment_2].map(|t| t.into_data())
+            };
+            let (dense, factored) = (train(false), train(true));
+            for (d, f) in dense.iter().zip(&factored) {
+                f.assert_approx_eq::<f32>(d, burn::tensor::Tolerance::rel_abs(1e-5, 1e-6));
+            }
         }
     }
 

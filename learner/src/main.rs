@@ -85,9 +85,10 @@ static ALLOCATOR: mimalloc::MiMalloc = mimalloc::MiMalloc;
 
 /// How long mimalloc keeps freed memory before it returns it to the
 /// system, ms. Its default, 1 s, is shorter than an update at 320 × 256
-/// (2.5 s on 2 cores): each update's gradients, 168 MB for each copy of
-/// the 81,920 × 512 layer, were faulted in and zeroed by the kernel afresh
-/// (about 12 % of the update). An idle learner still gives memory back.
+/// (1.4–2.5 s on 2 cores): each update's tensors (activations, the target
+/// passes' outputs: hundreds of megabytes) were faulted in and zeroed by
+/// the kernel afresh, and an update took about 10 % longer. An idle
+/// learner still gives memory back.
 const PURGE_DELAY_MS: &str = "30000";
 
 /// mimalloc reads its options from the environment before `main`: a

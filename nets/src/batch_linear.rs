@@ -1,14 +1,16 @@
-//! The encoder's linear layer on Burn's CPU backend (flex), with a weight
-//! gradient computed in place of Burn's matrix product.
+//! The encoder's linear layer on Burn's CPU backend (flex), whose weight
+//! gradient is registered as its two factors.
 //!
 //! At 320 × 256 the layer maps 81,920 features to 512: its weight gradient
-//! `dW = xᵀ · dy` is a 168 MB matrix summed over only the batch. Burn's
-//! product allocates each output zeroed and then copies it once more to
-//! align it, two extra passes over 168 MB for every network that learns.
-//! Here blocks of `dW` are summed in registers and written once. The
-//! forward product and the input gradient (`dx = dy · Wᵀ`, 10 MB) stay
-//! Burn's. The tests check the layer against Burn's `Linear` to 1e-4,
-//! forward and gradients. Other devices (wgpu, cuda) keep Burn's `Linear`.
+//! `dW = xᵀ · dy` is a 168 MB matrix of rank at most the batch size, made
+//! from 10 MB of factors. The backward step registers the factors instead
+//! ([`FactoredGradient`]), and the learner's Adam step expands them block
+//! by block beside the weight it updates: no network that learns holds a
+//! 168 MB gradient (two at once in the critics' step), and nothing writes
+//! and reads one back. The forward product and the input gradient
+//! (`dx = dy · Wᵀ`) stay Burn's. The tests check the layer against Burn's
+//! `Linear` to 1e-4, forward and gradients (expanded). Other devices (wgpu,
+//! cuda) keep Burn's `Linear`.
 
 use burn::backend::autodiff::NodeId;
 use burn::backend::autodiff::checkpoint::base::Checkpointer;
@@ -20,7 +22,6 @@ use burn::backend::{Autodiff, Backend, Dispatch, Flex, backend_extension};
 use burn::tensor::Tensor;
 use burn_flex::FlexTensor;
 use pulp::{Arch, Simd, WithSimd};
-use rayon::prelude::*;
 
 use crate::batch_conv::tensor;
 
@@ -37,7 +38,9 @@ pub trait BatchLinear: Backend {
 }
 
 /// `x · weight + bias` (see [`BatchLinear`]); only on devices where
-/// [`is_cpu_backend`](crate::batch_conv::is_cpu_backend) holds.
+/// [`is_cpu_backend`](crate::batch_conv::is_cpu_backend) holds. The
+/// weight's gradient is a [`FactoredGradient`]: an optimiser must read it
+/// as one.
 pub fn batch_linear(x: Tensor<2>, weight: Tensor<2>, bias: Tensor<1>) -> Tensor<2> {
     Tensor::from_dispatch(<Dispatch as BatchLinear>::batch_linear(
         x.into_dispatch(),
@@ -74,8 +77,8 @@ impl Backward<Flex, 3> for BatchLinearBackward {
         if let Some(node) = node_weight {
             let x = x.to_contiguous();
             let inputs = x.layout().shape()[1];
-            let dw = weight_grad(x.storage(), dy.storage(), batch, inputs);
-            grads.register::<Flex>(node.id, tensor(dw, [inputs, outputs]));
+            let factors = FactoredGradient::pack(x.storage(), dy.storage(), batch, inputs, outputs);
+            grads.register::<Flex>(node.id, tensor(factors, [batch + 1, inputs + outputs]));
         }
         if let Some(node) = node_bias {
             let mut db = vec![0f32; outputs];
@@ -139,50 +142,127 @@ fn forward(x: FlexTensor, weight: FlexTensor, bias: &FlexTensor) -> FlexTensor {
 const ROWS: usize = 4;
 /// Vectors of `dW`'s columns summed together in registers.
 const VECTORS: usize = 4;
-/// Rows of `dW` per parallel task.
-const TASK_ROWS: usize = 64;
 
-/// `xᵀ · dy` for `x` `[batch, inputs]` and `dy` `[batch, outputs]`:
-/// `[inputs, outputs]`, each element a sum over the batch in order.
-fn weight_grad(x: &[f32], dy: &[f32], batch: usize, inputs: usize) -> Vec<f32> {
-    let outputs = dy.len() / batch.max(1);
-    let mut dw = vec![0f32; inputs * outputs];
-    if outputs == 0 {
-        return dw;
-    }
-    let factors = Factors {
-        x,
-        dy,
-        batch,
-        inputs,
-        outputs,
-    };
-    let arch = Arch::new();
-    dw.par_chunks_mut(TASK_ROWS * outputs)
-        .enumerate()
-        .for_each(|(task, rows)| {
-            arch.dispatch(OuterProduct {
-                factors,
-                first_row: task * TASK_ROWS,
-                dw: rows,
-            })
-        });
-    dw
-}
-
-/// `x` `[batch, inputs]` and `dy` `[batch, outputs]`.
-#[derive(Clone, Copy)]
-struct Factors<'a> {
-    x: &'a [f32],
-    dy: &'a [f32],
+/// The weight gradient `dW = xᵀ · dy` of a [`batch_linear`] layer as its
+/// backward step registers it: for a weight `[inputs, outputs]`, a tensor
+/// `[batch + 1, inputs + outputs]` whose row `k` is sample `k`'s input and
+/// output gradient, `[x_k | dy_k]`, and whose last row is `[1, 0, …]`.
+///
+/// Burn adds the gradients a weight gets from each of its uses; the sum of
+/// two factored gradients is not one, so the `1` counts the uses: a layer
+/// used twice in one graph makes it `2`, which [`FactoredGradient::of`]
+/// refuses instead of expanding a wrong gradient.
+#[derive(Clone, Copy, Debug)]
+pub struct FactoredGradient<'a> {
+    /// The tensor's elements, row by row.
+    rows: &'a [f32],
     batch: usize,
     inputs: usize,
     outputs: usize,
 }
 
+/// A gradient that is not the [`FactoredGradient`] of its weight.
+#[derive(Debug, thiserror::Error)]
+#[error("the gradient of a {weight:?} weight is {gradient:?}: {why}")]
+pub struct FactoredGradientError {
+    weight: [usize; 2],
+    gradient: [usize; 2],
+    why: &'static str,
+}
+
+impl<'a> FactoredGradient<'a> {
+    /// The factored gradient in `elements`, a tensor of shape `gradient`,
+    /// registered for a weight of shape `weight`: `None` where the shapes
+    /// are equal (an ordinary gradient).
+    pub fn of(
+        elements: &'a [f32],
+        gradient: [usize; 2],
+        weight: [usize; 2],
+    ) -> Option<Result<Self, FactoredGradientError>> {
+        if gradient == weight {
+            return None;
+        }
+        let ([rows, width], [inputs, outputs]) = (gradient, weight);
+        let fail = |why| {
+            Some(Err(FactoredGradientError {
+                weight,
+                gradient,
+                why,
+            }))
+        };
+        if rows == 0 || width != inputs + outputs || elements.len() != rows * width {
+            return fail("neither the weight's shape nor its factors'");
+        }
+        let batch = rows - 1;
+        let last = &elements[batch * width..];
+        if last[0] != 1.0 || last[1..].iter().any(|&e| e != 0.0) {
+            return fail(
+                "a factored gradient summed with another: the layer was used more than once in \
+                 one graph, whose weight gradient cannot be kept as factors",
+            );
+        }
+        Some(Ok(Self {
+            rows: &elements[..batch * width],
+            batch,
+            inputs,
+            outputs,
+        }))
+    }
+
+    /// The tensor's elements for inputs `x` `[batch, inputs]` and output
+    /// gradients `dy` `[batch, outputs]`.
+    fn pack(x: &[f32], dy: &[f32], batch: usize, inputs: usize, outputs: usize) -> Vec<f32> {
+        let mut elements = Vec::with_capacity((batch + 1) * (inputs + outputs));
+        for k in 0..batch {
+            elements.extend_from_slice(&x[k * inputs..][..inputs]);
+            elements.extend_from_slice(&dy[k * outputs..][..outputs]);
+        }
+        elements.push(1.0);
+        elements.resize((batch + 1) * (inputs + outputs), 0.0);
+        elements
+    }
+
+    /// Columns of `dW` (the weight's outputs).
+    pub fn outputs(&self) -> usize {
+        self.outputs
+    }
+
+    /// Rows `first_row..` of `dW` into `out`, whole rows: each element the
+    /// sum over the batch in order, the same for any split into rows.
+    pub fn rows_into(&self, first_row: usize, out: &mut [f32]) {
+        if self.outputs == 0 {
+            return;
+        }
+        assert!(
+            out.len().is_multiple_of(self.outputs)
+                && first_row + out.len() / self.outputs <= self.inputs,
+            "rows {first_row}.. of {} do not fill {} elements",
+            self.inputs,
+            out.len()
+        );
+        Arch::new().dispatch(OuterProduct {
+            factors: *self,
+            first_row,
+            dw: out,
+        });
+    }
+
+    /// `x[k, i]`: sample `k`'s inputs from `i` on.
+    #[inline(always)]
+    fn x(&self, k: usize, i: usize) -> &[f32] {
+        &self.rows[k * (self.inputs + self.outputs) + i..][..self.inputs - i]
+    }
+
+    /// `dy[k, j]`: sample `k`'s output gradients from `j` on.
+    #[inline(always)]
+    fn dy(&self, k: usize, j: usize) -> &[f32] {
+        &self.rows[k * (self.inputs + self.outputs) + self.inputs + j..][..self.outputs - j]
+    }
+}
+
 /// The rows of `dW` from `first_row` on, into `dw`.
 struct OuterProduct<'a> {
-    factors: Factors<'a>,
+    factors: FactoredGradient<'a>,
     first_row: usize,
     dw: &'a mut [f32],
 }
@@ -195,31 +275,30 @@ impl WithSimd for OuterProduct<'_> {
         let (f, mut row) = (self.factors, self.first_row);
         let mut blocks = self.dw.chunks_exact_mut(ROWS * f.outputs);
         for block in blocks.by_ref() {
-            f.rows::<S, ROWS>(simd, row, block);
+            f.block::<S, ROWS>(simd, row, block);
             row += ROWS;
         }
         for single in blocks.into_remainder().chunks_exact_mut(f.outputs) {
-            f.rows::<S, 1>(simd, row, single);
+            f.block::<S, 1>(simd, row, single);
             row += 1;
         }
     }
 }
 
-impl Factors<'_> {
+impl FactoredGradient<'_> {
     /// Rows `row..row + R` of `dW` into `out` (`R` rows).
     #[inline(always)]
-    fn rows<S: Simd, const R: usize>(&self, simd: S, row: usize, out: &mut [f32]) {
+    fn block<S: Simd, const R: usize>(&self, simd: S, row: usize, out: &mut [f32]) {
         let (lanes, outputs) = (S::F32_LANES, self.outputs);
         let width = VECTORS * lanes;
         let full = outputs / width * width;
         for column in (0..full).step_by(width) {
             let mut acc = [[simd.splat_f32s(0.0); VECTORS]; R];
             for k in 0..self.batch {
-                let d = &self.dy[k * outputs + column..][..width];
+                let d = &self.dy(k, column)[..width];
                 let d: [S::f32s; VECTORS] =
                     std::array::from_fn(|v| simd.partial_load_f32s(&d[v * lanes..][..lanes]));
-                let xs = &self.x[k * self.inputs + row..][..R];
-                for (acc, &x) in acc.iter_mut().zip(xs) {
+                for (acc, &x) in acc.iter_mut().zip(&self.x(k, row)[..R]) {
                     let x = simd.splat_f32s(x);
                     for (a, d) in acc.iter_mut().zip(d) {
                         *a = simd.mul_add_e_f32s(x, d, *a);
@@ -237,7 +316,7 @@ impl Factors<'_> {
         for r in 0..R {
             for (j, o) in out[r * outputs..][full..outputs].iter_mut().enumerate() {
                 *o = (0..self.batch)
-                    .map(|k| self.x[k * self.inputs + row + r] * self.dy[k * outputs + full + j])
+                    .map(|k| self.x(k, row + r)[0] * self.dy(k, full + j)[0])
                     .sum();
             }
         }
@@ -248,10 +327,30 @@ impl Factors<'_> {
 mod tests {
     use super::*;
     use burn::nn::{Linear, LinearConfig};
-    use burn::tensor::{Device, Distribution, Tolerance};
+    use burn::tensor::{Device, Distribution, TensorData, Tolerance};
 
-    /// Forward and all three gradients against Burn's `Linear`, on shapes
-    /// with whole and partial row blocks, column blocks and tasks.
+    /// `dW` of the factored gradient `grad` for a weight of shape
+    /// `weight`, expanded (in two calls, to check a split into rows), or
+    /// `grad` where it is an ordinary gradient.
+    fn expanded(grad: Tensor<2>, weight: [usize; 2]) -> Tensor<2> {
+        let device = grad.device();
+        let dims = grad.dims();
+        let elements: Vec<f32> = grad.into_data().try_to_vec().unwrap();
+        let Some(factored) = FactoredGradient::of(&elements, dims, weight) else {
+            return Tensor::from_data(TensorData::new(elements, dims), &device);
+        };
+        let factored = factored.unwrap();
+        let [inputs, outputs] = weight;
+        let mut dw = vec![f32::NAN; inputs * outputs];
+        let (first, rest) = dw.split_at_mut(inputs / 2 * outputs);
+        factored.rows_into(0, first);
+        factored.rows_into(inputs / 2, rest);
+        Tensor::from_data(TensorData::new(dw, weight), &device)
+    }
+
+    /// Forward and all three gradients (the weight's expanded) against
+    /// Burn's `Linear`, on shapes with whole and partial row blocks and
+    /// column blocks.
     #[test]
     fn forward_and_gradients_match_burns_linear() {
         let device = Device::flex().autodiff();
@@ -269,10 +368,11 @@ mod tests {
                     layer.forward(x.clone())
                 };
                 let grads = (y.clone() * up.clone()).sum().backward();
+                let dw = expanded(weight.grad(&grads).unwrap(), [inputs, outputs]);
                 [
                     y.into_data(),
                     x.grad(&grads).unwrap().into_data(),
-                    weight.grad(&grads).unwrap().into_data(),
+                    dw.into_data(),
                     bias.grad(&grads).unwrap().into_data(),
                 ]
             };
@@ -307,5 +407,39 @@ mod tests {
             &layer.forward(x).into_data(),
             Tolerance::rel_abs(1e-5, 1e-5),
         );
+    }
+
+    /// The fast layer's weight gradient is factored, and one that Burn
+    /// summed from two uses of the layer is refused, not expanded.
+    #[test]
+    fn a_layer_used_twice_in_one_graph_has_its_gradient_refused() {
+        let device = Device::flex().autodiff();
+        device.seed(13);
+        let layer: Linear = LinearConfig::new(6, 3).init(&device);
+        let (weight, bias) = (layer.weight.val(), layer.bias.as_ref().unwrap().val());
+        let x = Tensor::<2>::random([4, 6], Distribution::Normal(0.0, 1.0), &device);
+        let once = batch_linear(x.clone(), weight.clone(), bias.clone());
+        let grad = |y: Tensor<2>| {
+            let grad = weight.grad(&y.sum().backward()).unwrap();
+            let dims = grad.dims();
+            (grad.into_data().try_to_vec::<f32>().unwrap(), dims)
+        };
+        let (elements, dims) = grad(once);
+        assert_eq!(dims, [5, 9]);
+        assert!(
+            FactoredGradient::of(&elements, dims, [6, 3])
+                .unwrap()
+                .is_ok()
+        );
+
+        let twice = batch_linear(x.clone(), weight.clone(), bias.clone())
+            + batch_linear(x, weight.clone(), bias);
+        let (elements, dims) = grad(twice);
+        let error = FactoredGradient::of(&elements, dims, [6, 3])
+            .unwrap()
+            .unwrap_err();
+        assert!(error.to_string().contains("used more than once"), "{error}");
+        // A gradient of the weight's own shape is an ordinary one.
+        assert!(FactoredGradient::of(&[0.0; 18], [6, 3], [6, 3]).is_none());
     }
 }

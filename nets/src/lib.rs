@@ -34,6 +34,7 @@ pub use architecture::{
     Architecture, ArchitectureError, PAPER_ARCHITECTURE, Pooling, SET_ARCHITECTURE, SetShape,
 };
 pub use batch_conv::is_cpu_backend;
+pub use batch_linear::{FactoredGradient, FactoredGradientError};
 pub use critic::{Critic, CriticConfig};
 pub use encoder::{Encoder, EncoderConfig};
 pub use head::{Head, HeadConfig};
