@@ -7,6 +7,8 @@
 //! kernel faults in and zeroes every time. Here each element is updated
 //! once, in place where the tensor is not shared, with Burn's formulas and
 //! Adam's state ([`AdamState`]), so checkpoints are the same either way.
+//! That layer's gradient arrives as its factors ([`FactoredGradient`]) and
+//! is expanded here a few rows at a time, beside the rows it updates.
 //! Other devices (wgpu, cuda) run Burn's operations.
 
 use burn::backend::tensor::FloatTensor;
