@@ -51,7 +51,7 @@ pub trait BatchConv: Backend {
 }
 
 /// Whether `device` is Burn's CPU backend (flex), with or without autodiff:
-/// where [`batch_conv2d`] and the learner's fused updates run.
+/// where the CPU convolution and the learner's fused updates run.
 pub fn is_cpu_backend(device: &burn::tensor::Device) -> bool {
     matches!(
         device.clone().inner().as_dispatch(),

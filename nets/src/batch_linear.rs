@@ -143,10 +143,11 @@ const ROWS: usize = 4;
 /// Vectors of `dW`'s columns summed together in registers.
 const VECTORS: usize = 4;
 
-/// The weight gradient `dW = xᵀ · dy` of a [`batch_linear`] layer as its
-/// backward step registers it: for a weight `[inputs, outputs]`, a tensor
-/// `[batch + 1, inputs + outputs]` whose row `k` is sample `k`'s input and
-/// output gradient, `[x_k | dy_k]`, and whose last row is `[1, 0, …]`.
+/// The weight gradient `dW = xᵀ · dy` of the encoder's linear layer on the
+/// CPU as its backward step registers it: for a weight `[inputs, outputs]`,
+/// a tensor `[batch + 1, inputs + outputs]` whose row `k` is sample `k`'s
+/// input and output gradient, `[x_k | dy_k]`, and whose last row is
+/// `[1, 0, …]`.
 ///
 /// Burn adds the gradients a weight gets from each of its uses; the sum of
 /// two factored gradients is not one, so the `1` counts the uses: a layer

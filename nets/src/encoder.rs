@@ -61,7 +61,8 @@ pub fn min_image_side() -> usize {
 
 impl EncoderConfig {
     /// Feature-map size after the three convolutions: (channels, height,
-    /// width); a side shorter than [`min_image_side`] counts as 0.
+    /// width); a side shorter than the convolutions take (8 pixels, see
+    /// `min_image_side`) counts as 0.
     pub fn conv_output(&self) -> [usize; 3] {
         let side = |s| conv_side(s).unwrap_or(0);
         [CONVOLUTIONS[2].1, side(self.height), side(self.width)]
