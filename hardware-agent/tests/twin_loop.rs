@@ -7,13 +7,7 @@ use serde_json::Value;
 use std::path::Path;
 use std::process::Command;
 use tweezer_nets::{ActorConfig, Architecture, EncoderConfig, SnapshotInfo, encode};
-use tweezer_system_tests::output_of;
-
-/// The `[control]` table of every config here: a step may start up to a
-/// second late. These tests drive the twin on a shared, possibly loaded
-/// machine that cannot promise the instrument's 100 ms; the deadline itself
-/// is tested on its own, with an injected stall (`loop_interruptions.rs`).
-const CONTROL: &str = "[control]\ndeadline_margin_ms = 1000\n";
+use tweezer_system_tests::{AGENT_CONTROL, output_of};
 
 /// Runs `hardware-agent` with `args`; its stdout lines as JSON and stderr.
 fn agent(args: &[&str]) -> (bool, Vec<Value>, String) {
@@ -63,7 +57,7 @@ fn the_greedy_policy_reaches_the_target_on_the_twin_and_the_episode_is_recorded(
     let dir = tempfile::tempdir().unwrap();
     let records = dir.path().join("records");
     let config = dir.path().join("agent.toml");
-    std::fs::write(&config, CONTROL).unwrap();
+    std::fs::write(&config, AGENT_CONTROL).unwrap();
     let (ok, lines, stderr) = greedy_seed_1(&config, &records);
     assert!(ok, "{stderr}");
     let episode = &lines[0];
@@ -118,7 +112,7 @@ fn a_snapshot_drives_the_twin_and_a_mismatched_one_is_refused() {
     let config = dir.path().join("agent.toml");
     std::fs::write(
         &config,
-        format!("[env]\ntime_limit = 12\n[env.image]\nwidth = 40\nheight = 32\n{CONTROL}"),
+        format!("[env]\ntime_limit = 12\n[env.image]\nwidth = 40\nheight = 32\n{AGENT_CONTROL}"),
     )
     .unwrap();
     let records = dir.path().join("records");
@@ -148,7 +142,7 @@ fn a_snapshot_drives_the_twin_and_a_mismatched_one_is_refused() {
 
     // The same snapshot for an agent rendering the paper's 320 x 256.
     let paper = dir.path().join("paper.toml");
-    std::fs::write(&paper, format!("[env]\ntime_limit = 12\n{CONTROL}")).unwrap();
+    std::fs::write(&paper, format!("[env]\ntime_limit = 12\n{AGENT_CONTROL}")).unwrap();
     let (ok, _, stderr) = agent(&args(&paper).each_ref().map(String::as_str));
     assert!(!ok);
     assert!(
@@ -169,7 +163,7 @@ fn virtual_obstacles_fill_a_field_of_view_wider_than_the_camera() {
         &config,
         format!(
             "[env]\nfov_px = [1600, 1280]\ntime_limit = 3\n[env.image]\nwidth = 80\nheight = 64\n\
-             [overlay]\nfile = {:?}\n{CONTROL}",
+             [overlay]\nfile = {:?}\n{AGENT_CONTROL}",
             overlay.to_str().unwrap()
         ),
     )
