@@ -5,12 +5,14 @@
 # process's peak resident memory.
 #
 #   benchmarks/learner-vs-pytorch.sh [--reps N] [--updates N] [--device D]
-#       [--replay-capacity N] [--json]
+#       [--replay-capacity N] [--timeout S] [--json]
 #
 # The learner's replay holds 20,000 transitions unless --replay-capacity
 # says otherwise (the paper's 1,050,000 for the memory goal); PyTorch's
 # process holds none.
 # --device wgpu or cuda runs ours on that learner.device and PyTorch on CUDA.
+# Each process may run --timeout seconds (default 1200) before it is
+# killed and the run ends with its error output.
 # PyTorch comes from the pinned benchmarks/pytorch/requirements.txt, into a
 # virtual environment made on first use ($BENCH_VENV, default
 # ~/.cache/tweezer-rl/bench-venv). The learner is $LEARNER, default the

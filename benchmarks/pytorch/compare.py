@@ -11,22 +11,38 @@ import statistics
 import subprocess
 import sys
 import tempfile
+import time
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 RESOLUTIONS = [(40, 32), (320, 256)]
 
 
-def measured(command):
-    """Runs `command` to its end: its JSON output, with its peak resident
-    memory in MB (the kernel's count for the process, read when it is
-    reaped) under "peak_rss_mb"."""
+def measured(command, timeout):
+    """Runs `command` to its end, for at most `timeout` seconds: its JSON
+    output, with its peak resident memory in MB (the kernel's count for the
+    process, read when it is reaped) under "peak_rss_mb". A command that
+    fails or outlives its time ends the benchmark with its error output."""
     with tempfile.TemporaryFile() as out, tempfile.TemporaryFile() as err:
         process = subprocess.Popen(command, stdout=out, stderr=err)
-        _, status, usage = os.wait4(process.pid, 0)
+        deadline = time.monotonic() + timeout
+        pid, status, usage = os.wait4(process.pid, os.WNOHANG)
+        while not pid and time.monotonic() < deadline:
+            time.sleep(0.05)
+            pid, status, usage = os.wait4(process.pid, os.WNOHANG)
+        if not pid:
+            process.kill()
+            _, status, usage = os.wait4(process.pid, 0)
+        # Reaped here: Popen must not wait for it again.
         process.returncode = os.waitstatus_to_exitcode(status)
-        if process.returncode != 0:
+        if not pid:
+            failure = f"did not finish within {timeout:g} s (--timeout) and was killed"
+        elif process.returncode != 0:
+            failure = f"failed ({process.returncode})"
+        else:
+            failure = None
+        if failure:
             err.seek(0)
-            sys.exit(f"{' '.join(command)} failed ({process.returncode}):\n"
+            sys.exit(f"{' '.join(command)} {failure}:\n"
                      f"{err.read().decode(errors='replace')}")
         out.seek(0)
         result = json.loads(out.read())
@@ -35,7 +51,8 @@ def measured(command):
     return result
 
 
-def learner_bench(learner, device, width, height, updates, batch_size, replay, config_dir):
+def learner_bench(learner, device, width, height, updates, batch_size, replay, config_dir,
+                  timeout):
     config = os.path.join(config_dir, f"{width}x{height}.toml")
     with open(config, "w") as f:
         f.write(f"[env.image]\nwidth = {width}\nheight = {height}\n")
@@ -43,14 +60,15 @@ def learner_bench(learner, device, width, height, updates, batch_size, replay, c
             f.write(f"[learner]\ndevice = \"{device}\"\n")
     return measured(
         [learner, "--config", config, "bench", "--json", "--updates", str(updates),
-         "--batch-size", str(batch_size), "--replay-capacity", str(replay)])
+         "--batch-size", str(batch_size), "--replay-capacity", str(replay)], timeout)
 
 
-def pytorch_bench(device, width, height, updates, batch_size, threads):
+def pytorch_bench(device, width, height, updates, batch_size, threads, timeout):
     return measured(
         [sys.executable, os.path.join(HERE, "td3_update.py"), "--width", str(width),
          "--height", str(height), "--updates", str(updates), "--batch-size", str(batch_size),
-         "--threads", str(threads), "--device", "cpu" if device == "cpu" else "cuda"])
+         "--threads", str(threads), "--device", "cpu" if device == "cpu" else "cuda"],
+        timeout)
 
 
 def main():
@@ -66,6 +84,8 @@ def main():
                         help="ours on flex, wgpu or cuda; PyTorch on the CPU or CUDA")
     parser.add_argument("--replay-capacity", type=int, default=20000,
                         help="transitions in the learner's replay (the paper's: 1050000)")
+    parser.add_argument("--timeout", type=float, default=1200,
+                        help="seconds each benchmark process may run before it is killed")
     parser.add_argument("--json", action="store_true")
     args = parser.parse_args()
 
@@ -77,12 +97,13 @@ def main():
             ours_mb, theirs_mb = [], []
             for _ in range(args.reps):
                 bench = learner_bench(args.learner, args.device, width, height, updates,
-                                      args.batch_size, args.replay_capacity, config_dir)
+                                      args.batch_size, args.replay_capacity, config_dir,
+                                      args.timeout)
                 ours.append(bench["update_ms_mean"])
                 ours_mb.append(bench["peak_rss_mb"])
                 device = bench.get("device", "flex")
                 torch = pytorch_bench(args.device, width, height, updates, args.batch_size,
-                                      args.threads)
+                                      args.threads, args.timeout)
                 theirs.append(torch["update_ms_mean"])
                 theirs_mb.append(torch["peak_rss_mb"])
                 peer = f"{torch['peer']} on {torch['device']}"
