@@ -322,14 +322,11 @@ impl DeviceChoice {
         match self {
             Self::Flex => Ok(Device::flex()),
             #[cfg(feature = "cuda")]
-            Self::Cuda => {
-                one_stream();
-                Ok(Device::cuda(0))
-            }
+            Self::Cuda => crate::gpu_devices::cuda(),
             #[cfg(not(feature = "cuda"))]
             Self::Cuda => Err(missing("cuda")),
             #[cfg(feature = "wgpu")]
-            Self::Wgpu => wgpu_device(),
+            Self::Wgpu => crate::gpu_devices::wgpu(),
             #[cfg(not(feature = "wgpu"))]
             Self::Wgpu => Err(missing("wgpu")),
         }
@@ -350,63 +347,18 @@ impl DeviceChoice {
     }
 }
 
-/// Puts the work of every thread on one stream of Burn's GPU runtimes,
-/// before the first kernel. By default each thread gets its own, and a TD3
-/// step on another thread than the one its tensors came from (the learner
-/// builds its networks on one thread and trains on another) came out wrong
-/// in fresh processes on wgpu: 4 of 4, against 0 of 4 on one stream.
-#[cfg(any(feature = "cuda", feature = "wgpu"))]
-fn one_stream() {
-    use cubecl_environment::stream::{StreamPolicy, set_policy};
-    set_policy(StreamPolicy::Single);
-}
-
-/// The graphics APIs the wgpu device may come up on, best first.
-#[cfg(feature = "wgpu")]
-const WGPU_APIS: &[burn::tensor::wgpu::WgpuBackend] = {
-    use burn::tensor::wgpu::WgpuBackend::{Dx12, Metal, Vulkan};
-    if cfg!(target_os = "macos") {
-        &[Metal]
-    } else if cfg!(windows) {
-        &[Vulkan, Dx12]
-    } else {
-        &[Vulkan]
-    }
-};
-
-/// The wgpu device on the first of [`WGPU_APIS`] with an adapter, opened
-/// once per process, or an error naming what each API answered. Burn's own
-/// choice would fall back to OpenGL, where Mesa's drivers lack the subgroup
-/// operations of Burn's matrix kernels (a batch-1 inference then panicked),
-/// and a machine without any driver panics at the first tensor instead.
-#[cfg(feature = "wgpu")]
-fn wgpu_device() -> Result<Device, ConfigError> {
-    static DEVICE: std::sync::OnceLock<Result<Device, String>> = std::sync::OnceLock::new();
-    let opened = DEVICE.get_or_init(|| {
-        one_stream();
-        let mut answers = Vec::new();
-        for &api in WGPU_APIS {
-            match Device::wgpu_options().graphics_api(api).init() {
-                Ok(device) => return Ok(device),
-                Err(e) => answers.push(format!("{api:?}: {e}")),
-            }
-        }
-        Err(answers.join("; "))
-    });
-    opened.clone().map_err(|answers| ConfigError::Invalid {
-        field: "learner.device".into(),
-        reason: format!(
-            "`wgpu` found no adapter ({answers}); install the GPU's Vulkan driver and the Vulkan loader (NVIDIA's driver also needs libglvnd's libraries: Debian's libvulkan1, libglvnd0, libglx0 and libegl1), or Mesa's software driver (Debian's mesa-vulkan-drivers), or choose `flex`"
-        ),
-    })
-}
-
 #[cfg(not(all(feature = "cuda", feature = "wgpu")))]
 fn missing(feature: &str) -> ConfigError {
+    // cuda's LLVM comes from PyPI through the script (docs/configuration.md).
+    let script = if feature == "cuda" {
+        "deploy/cuda/with-llvm.sh "
+    } else {
+        ""
+    };
     ConfigError::Invalid {
         field: "learner.device".into(),
         reason: format!(
-            "this learner was built without the `{feature}` feature; rebuild with `cargo build --release -p tweezer-learner --features {feature}`"
+            "this learner was built without the `{feature}` feature; rebuild with `{script}cargo build --release --locked -p tweezer-learner --features {feature}`"
         ),
     }
 }

@@ -11,6 +11,8 @@ pub mod divergence;
 pub mod durable_write;
 pub mod episodes;
 pub mod fused_updates;
+#[cfg(any(feature = "cuda", feature = "wgpu"))]
+pub mod gpu_devices;
 pub mod learner_state;
 pub mod limiter;
 pub mod loopback;

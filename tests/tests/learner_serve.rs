@@ -808,5 +808,6 @@ fn a_device_this_build_lacks_is_refused_before_the_run_directory_is_made() {
     let err = stderr_of_failure(&tweezer_system_tests::run("learner", &args));
     assert!(err.contains("learner.device"), "{err}");
     assert!(err.contains("--features cuda"), "{err}");
+    assert!(err.contains("deploy/cuda/with-llvm.sh"), "{err}");
     assert!(!run.exists(), "{err}");
 }
