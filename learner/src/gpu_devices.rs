@@ -27,11 +27,11 @@ pub fn cuda() -> Result<Device, ConfigError> {
     })
 }
 
-/// The wgpu device on the first of [`WGPU_APIS`] with an adapter, or an
-/// error naming what each API answered. Burn's own choice would fall back to
-/// OpenGL, where Mesa's drivers lack the subgroup operations of Burn's
-/// matrix kernels (a batch-1 inference then panicked), and a machine
-/// without any driver panics at the first tensor instead.
+/// The wgpu device on the first of [`WGPU_APIS`] with an adapter that
+/// works, or an error naming what each API answered. Burn's own choice
+/// would fall back to OpenGL, where Mesa's drivers lack the subgroup
+/// operations of Burn's matrix kernels (a batch-1 inference then panicked),
+/// and a machine without any driver panics at the first tensor instead.
 #[cfg(feature = "wgpu")]
 pub fn wgpu() -> Result<Device, ConfigError> {
     static DEVICE: OnceLock<Result<Device, String>> = OnceLock::new();
@@ -39,9 +39,10 @@ pub fn wgpu() -> Result<Device, ConfigError> {
         one_stream();
         let mut answers = Vec::new();
         for &api in WGPU_APIS {
-            match Device::wgpu_options().graphics_api(api).init() {
-                Ok(device) => return tried(device).map_err(|why| format!("{api:?}: {why}")),
-                Err(e) => answers.push(format!("{api:?}: {e}")),
+            let opened = Device::wgpu_options().graphics_api(api).init();
+            match opened.map_err(|e| e.to_string()).and_then(tried) {
+                Ok(device) => return Ok(device),
+                Err(why) => answers.push(format!("{api:?}: {why}")),
             }
         }
         Err(answers.join("; "))
