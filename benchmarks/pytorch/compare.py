@@ -29,17 +29,15 @@ def measured(command, timeout):
         while not pid and time.monotonic() < deadline:
             time.sleep(0.05)
             pid, status, usage = os.wait4(process.pid, os.WNOHANG)
+        failure = None
         if not pid:
             process.kill()
             _, status, usage = os.wait4(process.pid, 0)
+            failure = f"did not finish within {timeout:g} s (--timeout) and was killed"
         # Reaped here: Popen must not wait for it again.
         process.returncode = os.waitstatus_to_exitcode(status)
-        if not pid:
-            failure = f"did not finish within {timeout:g} s (--timeout) and was killed"
-        elif process.returncode != 0:
+        if failure is None and process.returncode != 0:
             failure = f"failed ({process.returncode})"
-        else:
-            failure = None
         if failure:
             err.seek(0)
             sys.exit(f"{' '.join(command)} {failure}:\n"
