@@ -104,11 +104,12 @@ fn first_panic_of<T>(f: impl FnOnce() -> T) -> Result<T, String> {
     std::panic::set_hook(previous);
     outcome.map_err(|_| {
         let mut first = first.lock().unwrap_or_else(PoisonError::into_inner);
-        first
-            .take()
-            .unwrap_or_else(|| "a panic without a message".into())
+        first.take().unwrap_or_else(|| NO_MESSAGE.into())
     })
 }
+
+/// What a panic whose payload is not text reports.
+const NO_MESSAGE: &str = "a panic without a message";
 
 /// A panic's message, with the thread it happened on.
 fn panic_message(info: &PanicHookInfo) -> String {
@@ -117,7 +118,7 @@ fn panic_message(info: &PanicHookInfo) -> String {
         .downcast_ref::<&str>()
         .copied()
         .or_else(|| payload.downcast_ref::<String>().map(String::as_str))
-        .unwrap_or("a panic without a message");
+        .unwrap_or(NO_MESSAGE);
     let thread = std::thread::current();
     format!(
         "thread `{}` panicked: {message}",
