@@ -334,10 +334,15 @@ impl DeviceChoice {
 }
 
 impl DeviceChoice {
+    /// `learner.device` as the config file spells it (`wgpu`).
+    pub fn name(self) -> String {
+        format!("{self:?}").to_lowercase()
+    }
+
     /// The device for reports: the choice and, on a GPU, the part Burn
     /// opened (`wgpu (llvmpipe (LLVM 15.0.6, 256 bits))`).
     pub fn describe(self, device: &Device) -> String {
-        let name = format!("{self:?}").to_lowercase();
+        let name = self.name();
         #[cfg(any(feature = "cuda", feature = "wgpu"))]
         if let Some(identity) = device.identity() {
             return format!("{name} ({})", identity.name);

@@ -80,11 +80,6 @@ pub struct Gpu {
 }
 
 impl Gpu {
-    /// `learner.device`, as the config file spells it.
-    pub fn name(&self) -> String {
-        format!("{:?}", self.choice).to_lowercase()
-    }
-
     fn device(&self) -> Device {
         self.choice.device().expect("opened by Gpu::turn")
     }
@@ -104,7 +99,7 @@ impl Gpu {
                 panic!(
                     "{}=1 but {} does not open: {why}",
                     self.require,
-                    self.name()
+                    self.choice.name()
                 )
             }
             Err(why) => {
@@ -185,7 +180,7 @@ fn updates_on_both<N: Networks>(
 }
 
 fn check(gpu: &Gpu, pairs: &[(UpdateStats, UpdateStats)]) {
-    let name = gpu.name();
+    let name = gpu.choice.name();
     for (i, (flex, on_gpu)) in pairs.iter().enumerate() {
         assert_same_update(i, (flex, on_gpu), ["flex", &name], 1e-3);
     }
@@ -297,7 +292,7 @@ pub fn bench(gpu: &Gpu, args: &[&str], vars: &[(&str, &str)]) -> std::process::O
         &config,
         format!(
             "[env.image]\nwidth = 20\nheight = 16\n[learner]\ndevice = \"{}\"\n",
-            gpu.name()
+            gpu.choice.name()
         ),
     )
     .unwrap();
@@ -318,7 +313,10 @@ pub fn learner_bench_reports_the_device(gpu: &Gpu) {
     assert!(output.status.success(), "{output:?}");
     let report: serde_json::Value = serde_json::from_slice(&output.stdout).unwrap();
     let device = report["device"].as_str().unwrap();
-    assert!(device.starts_with(&format!("{} (", gpu.name())), "{report}");
+    assert!(
+        device.starts_with(&format!("{} (", gpu.choice.name())),
+        "{report}"
+    );
     assert!(report["update_ms_mean"].as_f64().unwrap() > 0.0, "{report}");
 }
 
@@ -375,7 +373,7 @@ slack = 1000
 [learner.checkpoints]
 every_seconds = 0
 "#,
-            gpu.name()
+            gpu.choice.name()
         ),
     )
     .unwrap();
