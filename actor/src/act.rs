@@ -13,6 +13,10 @@ use tweezer_gym::{Action, EnvConfig, Observation, ObservationBounds, Policy};
 struct ObservationLine {
     /// Free spheres' centres, FOV px.
     centres: Vec<[f32; 2]>,
+    /// Each centre's move since the previous step, px, `null` for one new
+    /// to the view; absent: none known.
+    #[serde(default)]
+    displacements: Vec<Option<[f32; 2]>>,
     /// The target vector.
     vector: [f32; 2],
 }
@@ -62,6 +66,7 @@ pub fn run(
             serde_json::from_str(&line).with_context(|| format!("observation line {}", k + 1))?;
         let observation = Observation {
             centres: parsed.centres,
+            displacements: parsed.displacements,
             vector: parsed.vector,
         };
         observation

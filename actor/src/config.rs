@@ -58,6 +58,11 @@ pub struct ActorConfig {
     /// Standard deviation of the Gaussian action noise (`docs/spec.md` §4:
     /// 0.1).
     pub noise: f64,
+    /// Environments driven by the planner instead of the policy, with the
+    /// same noise: demonstrations that show the critics what dodging is
+    /// worth from the first step (their episodes count in the training
+    /// curves too). 0: none.
+    pub demonstrators: usize,
     /// Address of the Prometheus endpoint (`GET /metrics`; the security
     /// file then needs a certificate, key and tokens); none unless set.
     pub metrics_listen: Option<std::net::SocketAddr>,
@@ -78,6 +83,7 @@ impl Default for ActorConfig {
             seed: 0,
             seed_from_id: false,
             noise: 0.1,
+            demonstrators: 0,
             metrics_listen: None,
             reconnect_initial_ms: 100,
             reconnect_max_ms: 10_000,
@@ -134,6 +140,15 @@ impl ActorConfig {
                 format!("must be 1 to {}", tweezer_proto::MAX_BATCH_STEPS),
             );
         }
+        if self.demonstrators > self.envs {
+            return invalid(
+                "demonstrators",
+                format!(
+                    "{} is more than the {} environments (envs)",
+                    self.demonstrators, self.envs
+                ),
+            );
+        }
         if self.max_unacked == 0 {
             return invalid("max_unacked", "must be at least 1".into());
         }
@@ -172,5 +187,17 @@ mod tests {
             ..ActorConfig::default()
         };
         assert_eq!(plain.effective_seed(), 42);
+    }
+
+    #[test]
+    fn demonstrators_must_be_environments_of_the_actor() {
+        let config = |demonstrators| ActorConfig {
+            envs: 4,
+            demonstrators,
+            ..ActorConfig::default()
+        };
+        config(4).validate().unwrap();
+        let err = config(5).validate().unwrap_err().to_string();
+        assert!(err.contains("demonstrators"), "{err}");
     }
 }

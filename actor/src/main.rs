@@ -16,7 +16,7 @@ use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::sync::atomic::AtomicBool;
 use std::time::Duration;
-use tweezer_gym::{EnvConfig, EvalSummary, Greedy, Policy, Seeds, UniformRandom, evaluate};
+use tweezer_gym::{Baseline, EnvConfig, EvalSummary, Policy, Seeds, evaluate};
 use tweezer_nets::NetworkPolicy;
 use tweezer_process::init_logging;
 
@@ -63,7 +63,8 @@ enum Command {
     },
     /// Evaluate a policy over a list of episode seeds.
     Eval {
-        /// `greedy` (straight at the target), `random` (uniform actions), or
+        /// `greedy` (straight at the target), `random` (uniform actions),
+        /// `planner` (a receding-horizon search on the same observation), or
         /// the path of a policy snapshot (`.safetensors`).
         #[arg(long, default_value = "greedy")]
         policy: String,
@@ -107,9 +108,12 @@ enum Command {
     /// Print the effective configuration (the file over the defaults of
     /// `docs/spec.md`) as TOML.
     Config,
-    /// Run the greedy baseline on a few seeds and draw the paper's Figs. 5 and
-    /// 6.
+    /// Run a policy (the greedy baseline unless told) on a few seeds and
+    /// draw the paper's Figs. 5 and 6.
     Demo {
+        /// `greedy`, `random`, `planner`, or the path of a policy snapshot.
+        #[arg(long, default_value = "greedy")]
+        policy: String,
         /// Episode seeds.
         #[arg(long, default_value = "0..4")]
         seeds: Seeds,
@@ -119,18 +123,54 @@ enum Command {
     },
 }
 
-/// `greedy`, `random`, or the path of a snapshot file.
+/// A baseline's name, or the path of a snapshot file.
 fn policy_named(name: &str, env: &EnvConfig) -> anyhow::Result<Box<dyn Policy>> {
-    match name {
-        "greedy" => Ok(Box::new(Greedy)),
-        "random" => Ok(Box::new(UniformRandom::new(0))),
-        path if Path::new(path).is_file() => {
-            let (policy, _) = NetworkPolicy::from_file(Path::new(path), env, &Device::flex())?;
-            Ok(Box::new(policy))
+    if let Some(baseline) = Baseline::named(name) {
+        return Ok(baseline.policy(env));
+    }
+    if Path::new(name).is_file() {
+        let (policy, _) = NetworkPolicy::from_file(Path::new(name), env, &Device::flex())?;
+        return Ok(Box::new(policy));
+    }
+    bail!(
+        "unknown policy `{name}`: use {}, or the path of a snapshot file",
+        Baseline::names()
+    )
+}
+
+/// A policy whose acting is timed: the time a step's decision takes, the
+/// figure that must fit the instrument's control period.
+struct Timed {
+    policy: Box<dyn Policy>,
+    elapsed: Duration,
+    observations: usize,
+}
+
+impl Timed {
+    fn new(policy: Box<dyn Policy>) -> Self {
+        Self {
+            policy,
+            elapsed: Duration::ZERO,
+            observations: 0,
         }
-        other => bail!(
-            "unknown policy `{other}`: use `greedy`, `random`, or the path of a snapshot file"
-        ),
+    }
+
+    /// Mean wall time per observation acted on, µs.
+    fn per_observation_us(&self) -> f64 {
+        self.elapsed.as_secs_f64() * 1e6 / self.observations.max(1) as f64
+    }
+}
+
+impl Policy for Timed {
+    fn act(
+        &mut self,
+        observations: &[&tweezer_gym::Observation],
+        actions: &mut [tweezer_gym::Action],
+    ) {
+        let started = std::time::Instant::now();
+        self.policy.act(observations, actions);
+        self.elapsed += started.elapsed();
+        self.observations += observations.len();
     }
 }
 
@@ -203,9 +243,28 @@ fn main() -> anyhow::Result<()> {
             batch,
             json,
         } => {
-            let mut policy = policy_named(&policy, &config.env)?;
-            let episodes = evaluate(&config.env, policy.as_mut(), &seeds.0, batch)?;
-            print_summary(&EvalSummary::of(&episodes), json)?;
+            let mut policy = Timed::new(policy_named(&policy, &config.env)?);
+            let episodes = evaluate(&config.env, &mut policy, &seeds.0, batch)?;
+            let summary = EvalSummary::of(&episodes);
+            let per_observation_us = policy.per_observation_us();
+            if json {
+                #[derive(serde::Serialize)]
+                struct Eval {
+                    #[serde(flatten)]
+                    summary: EvalSummary,
+                    policy_us_per_observation: f64,
+                }
+                let eval = Eval {
+                    summary,
+                    policy_us_per_observation: per_observation_us,
+                };
+                println!("{}", serde_json::to_string(&eval)?);
+            } else {
+                print_summary(&summary, false)?;
+                println!(
+                    "policy time     {per_observation_us:.1} µs per observation (batches of up to {batch})"
+                );
+            }
         }
         Command::Act {
             policy,
@@ -282,9 +341,10 @@ fn main() -> anyhow::Result<()> {
             }
         }
         Command::Config => print!("{}", config.to_toml()),
-        Command::Demo { seeds, out } => {
+        Command::Demo { policy, seeds, out } => {
+            let mut policy = policy_named(&policy, &config.env)?;
             let pictures =
-                tweezer_figures::draw_episodes(&config.env, &mut Greedy, &seeds.0, &out)?;
+                tweezer_figures::draw_episodes(&config.env, policy.as_mut(), &seeds.0, &out)?;
             for path in &pictures.written {
                 println!("wrote {}", path.display());
             }

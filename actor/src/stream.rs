@@ -20,7 +20,7 @@ use std::sync::mpsc;
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 use tokio::runtime::Runtime;
-use tweezer_gym::{Action, Outcome, Policy, SplitMix64, UniformRandom, VecEnv};
+use tweezer_gym::{Action, Outcome, Planner, Policy, SplitMix64, UniformRandom, VecEnv};
 use tweezer_nets::NetworkPolicy;
 use tweezer_process::StopSignals;
 use tweezer_proto::pb::learner_client::LearnerClient;
@@ -121,6 +121,8 @@ struct Actor {
     actions: Vec<Action>,
     uniform: UniformRandom,
     noise: SplitMix64,
+    /// Drives the first `actor.demonstrators` environments.
+    planner: Planner,
     policy: Option<(u64, NetworkPolicy)>,
     explore_uniformly: bool,
     newest_snapshot: u64,
@@ -182,6 +184,7 @@ pub fn run(
         actions: vec![Action::ZERO; config.envs],
         uniform: UniformRandom::new(seed),
         noise: SplitMix64::derived(seed, 0x0015e),
+        planner: Planner::for_config(&file.env),
         policy: None,
         explore_uniformly: true,
         newest_snapshot: 0,
@@ -414,25 +417,32 @@ impl Actor {
         Ok(())
     }
 
-    /// Chooses every environment's action.
+    /// Chooses every environment's action: the planner's for the
+    /// demonstrators, the policy's (or uniform ones while the learner asks
+    /// for them) for the rest; noise on all but uniform ones.
     fn act(&mut self) {
-        match (&mut self.policy, self.explore_uniformly) {
+        let observations = self.envs.observations();
+        let demonstrators = self.file.actor.demonstrators;
+        let (shown, own) = self.actions.split_at_mut(demonstrators);
+        self.planner.act(&observations[..demonstrators], shown);
+        let noisy = match (&mut self.policy, self.explore_uniformly) {
             (Some((_, policy)), false) => {
-                let observations = self.envs.observations();
-                policy.act(&observations, &mut self.actions);
-                let sigma = self.file.actor.noise;
-                for a in &mut self.actions {
-                    let [x, y] = a.components();
-                    let (nx, ny) = (self.noise.normal(), self.noise.normal());
-                    *a = Action::clipped(x + (sigma * nx) as f32, y + (sigma * ny) as f32)
-                        .unwrap_or(Action::ZERO);
-                }
+                policy.act(&observations[demonstrators..], own);
+                self.actions.len()
             }
             _ => {
-                for a in &mut self.actions {
+                for a in own {
                     *a = self.uniform.sample();
                 }
+                demonstrators
             }
+        };
+        let sigma = self.file.actor.noise;
+        for a in &mut self.actions[..noisy] {
+            let [x, y] = a.components();
+            let (nx, ny) = (self.noise.normal(), self.noise.normal());
+            *a = Action::clipped(x + (sigma * nx) as f32, y + (sigma * ny) as f32)
+                .unwrap_or(Action::ZERO);
         }
     }
 

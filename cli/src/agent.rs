@@ -130,19 +130,25 @@ pub async fn run(
             file,
             learner,
             greedy,
+            planner,
             follow,
         } => {
             use pb::load_policy_request::Source;
-            let source = match (file, learner, greedy, &follow) {
-                (Some(f), _, _, _) => Source::File(f),
-                (None, Some(s), _, _) => Source::LearnerSnapshot(s),
-                (None, None, true, _) => Source::Greedy(true),
-                (None, None, false, Some(tag)) => Source::LearnerSnapshot(tag.clone()),
-                (None, None, false, None) => {
-                    return Err(anyhow!(
-                        "give the policy: --file SNAPSHOT, --learner best|latest|VERSION, --follow best|latest or --greedy"
-                    ));
-                }
+            // clap lets at most one source through.
+            let source = if let Some(f) = file {
+                Source::File(f)
+            } else if let Some(s) = learner {
+                Source::LearnerSnapshot(s)
+            } else if greedy {
+                Source::Greedy(true)
+            } else if planner {
+                Source::Planner(true)
+            } else if let Some(tag) = &follow {
+                Source::LearnerSnapshot(tag.clone())
+            } else {
+                return Err(anyhow!(
+                    "give the policy: --file SNAPSHOT, --learner best|latest|VERSION, --follow best|latest, --greedy or --planner"
+                ));
             };
             client
                 .load_policy(pb::LoadPolicyRequest {

@@ -209,6 +209,9 @@ pub enum AgentCommand {
         /// The greedy baseline.
         #[arg(long, group = "source")]
         greedy: bool,
+        /// The planner baseline (dodges without training).
+        #[arg(long, group = "source")]
+        planner: bool,
         /// Follow the learner's "best" or "latest": load it now, and each
         /// newer snapshot it publishes under that tag between episodes.
         #[arg(long, group = "source", value_name = "TAG")]

@@ -2,7 +2,7 @@
 //! directory, `learner serve` and its actors as local processes on
 //! loopback, progress, an orderly stop — and runs sweeps; `report` draws
 //! the paper's figures for finished runs and evaluates their snapshots on
-//! held-out seeds next to the greedy baseline.
+//! held-out seeds next to the greedy and planner baselines.
 
 pub mod processes;
 pub mod progress;

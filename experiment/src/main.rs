@@ -65,8 +65,8 @@ enum Command {
         json: bool,
     },
     /// Figures and an evaluation table for run directories: Fig. 4 (runs
-    /// with one label averaged), each run's best snapshot against greedy on
-    /// held-out seeds, Figs. 5 and 6 of the best.
+    /// with one label averaged), each run's best snapshot against greedy
+    /// and the planner on held-out seeds, Figs. 5 and 6 of the best.
     Report {
         /// Run directories.
         #[arg(required = true, value_name = "RUN_DIR")]

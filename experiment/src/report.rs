@@ -2,8 +2,8 @@
 //! more run directories. Runs with the same label (a sweep's seeds) are
 //! averaged in Fig. 4; each run's snapshot — the best of its kept ones on
 //! validation seeds, or the one published at its best rolling return — is
-//! evaluated on held-out seeds next to the greedy baseline; the best of them
-//! is drawn (Figs. 5, 6).
+//! evaluated on held-out seeds next to the greedy and planner baselines;
+//! the best of them is drawn (Figs. 5, 6).
 
 use crate::train_file::TrainFile;
 use anyhow::Context;
@@ -12,7 +12,7 @@ use serde::Serialize;
 use std::io::BufRead;
 use std::path::{Path, PathBuf};
 use tweezer_figures::{Curve, RewardFigure, draw_episodes, reward_figure};
-use tweezer_gym::{EnvConfig, EvalSummary, Greedy, evaluate};
+use tweezer_gym::{Baseline, EnvConfig, EvalSummary, evaluate};
 use tweezer_learner::config::LearnerFile;
 use tweezer_learner::run_dir::RunDir;
 use tweezer_nets::NetworkPolicy;
@@ -39,11 +39,11 @@ pub struct ReportOptions {
 pub struct EvalRow {
     /// The setting.
     pub label: String,
-    /// The run directory (empty for the greedy baseline).
+    /// The run directory (empty for a baseline).
     pub run: String,
-    /// `v<N>` or `greedy`.
+    /// `v<N>`, `greedy` or `planner`.
     pub policy: String,
-    /// How the snapshot was chosen (empty for greedy).
+    /// How the snapshot was chosen (empty for a baseline).
     pub chosen_by: String,
     /// The snapshot file.
     pub snapshot: String,
@@ -57,7 +57,8 @@ pub struct EvalRow {
 pub struct Report {
     /// Episode seeds of the table.
     pub seeds: String,
-    /// Rows: each run's best snapshot, then greedy per environment.
+    /// Rows: each run's best snapshot, then greedy and the planner per
+    /// environment.
     pub rows: Vec<EvalRow>,
     /// Theoretical maximum return per label.
     pub ideal_return: Vec<(String, f64)>,
@@ -282,20 +283,22 @@ pub fn write(runs: &[PathBuf], out: &Path, options: &ReportOptions) -> anyhow::R
             continue;
         }
         baselines.push(&run.env);
-        let summary = EvalSummary::of(&evaluate(
-            &run.env,
-            &mut Greedy,
-            &options.seeds,
-            options.batch,
-        )?);
-        rows.push(EvalRow {
-            label: run.label.clone(),
-            run: String::new(),
-            policy: "greedy".into(),
-            chosen_by: String::new(),
-            snapshot: String::new(),
-            summary,
-        });
+        for baseline in [Baseline::Greedy, Baseline::Planner] {
+            let summary = EvalSummary::of(&evaluate(
+                &run.env,
+                baseline.policy(&run.env).as_mut(),
+                &options.seeds,
+                options.batch,
+            )?);
+            rows.push(EvalRow {
+                label: run.label.clone(),
+                run: String::new(),
+                policy: baseline.name().into(),
+                chosen_by: String::new(),
+                snapshot: String::new(),
+                summary,
+            });
+        }
     }
 
     if let Some((k, mut policy, _)) = best {

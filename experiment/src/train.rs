@@ -3,7 +3,8 @@
 //! real gRPC), shows progress from the learner's status, stops them in order
 //! (actors, then the learner with its final checkpoint) at the time limit or
 //! on SIGINT/SIGTERM, and ends with the report of the run: the best
-//! snapshot evaluated on held-out seeds next to greedy, and the figures.
+//! snapshot evaluated on held-out seeds next to greedy and the planner, and
+//! the figures.
 //! A file with a `[sweep]` trains each of its runs in turn, then reports
 //! over all of them.
 

@@ -10,6 +10,7 @@ use crate::config::{EnvConfig, RewardComponent};
 use crate::observation::Observation;
 use crate::rng::SplitMix64;
 use crate::spheres::{FreeSphere, Motion};
+use crate::tracking::SphereTracker;
 use crate::wake_schedule::WakeSchedule;
 use std::f64::consts::TAU;
 use tweezer_config::ConfigError;
@@ -117,6 +118,7 @@ pub struct Env {
     initial_distance: f64,
     outcome: Outcome,
     observation: Observation,
+    tracker: SphereTracker,
 }
 
 fn distance(a: [f64; 2], b: [f64; 2]) -> f64 {
@@ -140,6 +142,7 @@ impl Env {
             initial_distance: 1.0,
             outcome: Outcome::Timeout,
             observation: Observation::default(),
+            tracker: SphereTracker::for_config(&config),
             config,
         })
     }
@@ -239,6 +242,7 @@ impl Env {
         self.target = target;
         self.initial_distance = distance(trap, target).max(f64::MIN_POSITIVE);
         self.outcome = Outcome::Running;
+        self.tracker.reset();
         self.wake.start(&self.spheres, trap);
         self.observe();
     }
@@ -262,6 +266,11 @@ impl Env {
                 self.observation.centres.push([x as f32, y as f32]);
             }
         }
+        self.tracker.track(
+            &self.observation.centres,
+            self.trap,
+            &mut self.observation.displacements,
+        );
         let mut v = [
             (self.target[0] - self.trap[0]) / self.initial_distance,
             (self.target[1] - self.trap[1]) / self.initial_distance,

@@ -3,6 +3,7 @@
 //! network sees them.
 
 use crate::config::EnvConfig;
+use crate::tracking::SphereTracker;
 
 /// What a policy observes at one step, identical in the virtual, physical and
 /// augmented environments.
@@ -12,6 +13,13 @@ pub struct Observation {
     /// full-resolution FOV px (x right, y down). The trapped sphere is not
     /// listed: it is always at the FOV centre and the renderer draws it.
     pub centres: Vec<[f32; 2]>,
+    /// Each centre's move since the previous step relative to the sample,
+    /// px, matched from consecutive centres by [`SphereTracker`]; `None` for
+    /// a sphere new to the field of view. Empty where no motion is known
+    /// (every sphere then counts as new), else one per centre.
+    ///
+    /// [`SphereTracker`]: crate::SphereTracker
+    pub displacements: Vec<Option<[f32; 2]>>,
     /// (target - trap) / initial displacement, magnitude clipped to 1.
     pub vector: [f32; 2],
 }
@@ -25,6 +33,9 @@ pub struct ObservationBounds {
     pub margin_px: f32,
     /// Most centres an observation may list.
     pub max_centres: usize,
+    /// Largest displacement per axis, px: a match farther than the tracker's
+    /// gate is never made.
+    pub max_displacement_px: f32,
 }
 
 /// Why an observation is malformed.
@@ -66,6 +77,28 @@ pub enum ObservationError {
         /// Allowed margin.
         margin: f32,
     },
+    /// The displacements are neither absent nor one per centre.
+    #[error(
+        "observation lists {displacements} displacements for {centres} centres: give none or one per centre"
+    )]
+    DisplacementCount {
+        /// Displacements given.
+        displacements: usize,
+        /// Centres given.
+        centres: usize,
+    },
+    /// A displacement is NaN, infinite, or longer than a step could move.
+    #[error("displacement {index} ({x}, {y}) px must be finite and at most {max} px on each axis")]
+    BadDisplacement {
+        /// Its position in the list.
+        index: usize,
+        /// x as given.
+        x: f32,
+        /// y as given.
+        y: f32,
+        /// The largest move allowed per axis.
+        max: f32,
+    },
     /// The target vector is NaN, infinite or longer than 1.
     #[error("target vector ({x}, {y}) must be finite with magnitude at most 1")]
     BadVector {
@@ -90,11 +123,18 @@ impl ObservationBounds {
             fov_px: [fov_w, fov_h],
             margin_px: radius,
             max_centres: per_side(fov_w) * per_side(fov_h),
+            max_displacement_px: SphereTracker::for_config(config).gate_px(),
         }
     }
 }
 
 impl Observation {
+    /// Sphere `index`'s displacement since the previous step, px, if it was
+    /// matched.
+    pub fn displacement(&self, index: usize) -> Option<[f32; 2]> {
+        self.displacements.get(index).copied().flatten()
+    }
+
     /// Checks that every value is finite and within `bounds`.
     pub fn validate(&self, bounds: &ObservationBounds) -> Result<(), ObservationError> {
         if self.centres.len() > bounds.max_centres {
@@ -120,6 +160,20 @@ impl Observation {
                 });
             }
         }
+        if !self.displacements.is_empty() && self.displacements.len() != self.centres.len() {
+            return Err(ObservationError::DisplacementCount {
+                displacements: self.displacements.len(),
+                centres: self.centres.len(),
+            });
+        }
+        let max = bounds.max_displacement_px;
+        for (index, d) in self.displacements.iter().enumerate() {
+            if let &Some([x, y]) = d
+                && !(x.is_finite() && y.is_finite() && x.abs() <= max && y.abs() <= max)
+            {
+                return Err(ObservationError::BadDisplacement { index, x, y, max });
+            }
+        }
         let [x, y] = self.vector;
         // A vector clipped to magnitude 1 in f32 may exceed 1 by rounding.
         if !(x.is_finite() && y.is_finite()) || x.hypot(y) > 1.0 + 1e-5 {
@@ -141,6 +195,7 @@ mod tests {
     fn a_typical_observation_is_valid() {
         let obs = Observation {
             centres: vec![[0.0, 0.0], [-27.0, 1051.0], [640.5, 512.25]],
+            displacements: vec![None, Some([1.5, -2.0]), Some([0.0, 0.0])],
             vector: [0.6, -0.8],
         };
         obs.validate(&bounds()).unwrap();
@@ -148,7 +203,11 @@ mod tests {
 
     #[test]
     fn malformed_observations_are_named() {
-        let bad = |centres: Vec<[f32; 2]>, vector| Observation { centres, vector };
+        let bad = |centres: Vec<[f32; 2]>, vector| Observation {
+            centres,
+            vector,
+            ..Observation::default()
+        };
         let b = bounds();
         assert!(matches!(
             bad(vec![[f32::NAN, 1.0]], [0.0, 0.0]).validate(&b),
@@ -170,5 +229,26 @@ mod tests {
             bad(vec![[1.0, 1.0]; b.max_centres + 1], [0.0, 0.0]).validate(&b),
             Err(ObservationError::TooManyCentres { .. })
         ));
+        let moving = |displacements| Observation {
+            centres: vec![[1.0, 1.0], [2.0, 2.0]],
+            displacements,
+            vector: [0.0, 0.0],
+        };
+        assert!(matches!(
+            moving(vec![None]).validate(&b),
+            Err(ObservationError::DisplacementCount {
+                displacements: 1,
+                centres: 2
+            })
+        ));
+        assert!(matches!(
+            moving(vec![None, Some([f32::NAN, 0.0])]).validate(&b),
+            Err(ObservationError::BadDisplacement { index: 1, .. })
+        ));
+        assert!(matches!(
+            moving(vec![Some([0.0, 20.0]), None]).validate(&b),
+            Err(ObservationError::BadDisplacement { index: 0, .. })
+        ));
+        moving(vec![]).validate(&b).unwrap();
     }
 }

@@ -1,7 +1,9 @@
 //! Policies: anything that maps a batch of observations to actions.
 
 use crate::action::Action;
+use crate::config::EnvConfig;
 use crate::observation::Observation;
+use crate::planner::Planner;
 use crate::rng::SplitMix64;
 
 /// Chooses actions for a batch of observations at once (networks run
@@ -59,6 +61,50 @@ impl Policy for UniformRandom {
     }
 }
 
+/// The policies that need no training, by the names users give them.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Baseline {
+    /// [`Greedy`]: straight at the target.
+    Greedy,
+    /// [`UniformRandom`] from seed 0.
+    Random,
+    /// [`Planner`]: a receding-horizon search on the same observation.
+    Planner,
+}
+
+impl Baseline {
+    /// Every baseline, in the order reports list them.
+    pub const ALL: [Self; 3] = [Self::Greedy, Self::Random, Self::Planner];
+
+    /// The baseline called `name`, if any.
+    pub fn named(name: &str) -> Option<Self> {
+        Self::ALL.into_iter().find(|b| b.name() == name)
+    }
+
+    /// Its name.
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::Greedy => "greedy",
+            Self::Random => "random",
+            Self::Planner => "planner",
+        }
+    }
+
+    /// The names, for messages: "`greedy`, `random`, `planner`".
+    pub fn names() -> String {
+        Self::ALL.map(|b| format!("`{}`", b.name())).join(", ")
+    }
+
+    /// The policy, for observations of `config`.
+    pub fn policy(self, config: &EnvConfig) -> Box<dyn Policy + Send> {
+        match self {
+            Self::Greedy => Box::new(Greedy),
+            Self::Random => Box::new(UniformRandom::new(0)),
+            Self::Planner => Box::new(Planner::for_config(config)),
+        }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -66,10 +112,19 @@ mod tests {
     #[test]
     fn greedy_saturates_toward_the_target() {
         let obs = Observation {
-            centres: vec![],
             vector: [0.6, -0.001],
+            ..Observation::default()
         };
         assert_eq!(Greedy::action(&obs).components(), [1.0, -0.1]);
+    }
+
+    #[test]
+    fn baselines_are_found_by_their_names() {
+        for b in Baseline::ALL {
+            assert_eq!(Baseline::named(b.name()), Some(b));
+        }
+        assert_eq!(Baseline::named("planer"), None);
+        assert_eq!(Baseline::names(), "`greedy`, `random`, `planner`");
     }
 
     #[test]

@@ -124,6 +124,9 @@ pub struct StepLog {
     /// What the policy saw: the free spheres detected, then the virtual
     /// obstacles in view (FOV px).
     pub centres: Vec<[f32; 2]>,
+    /// Each centre's move since the previous frame relative to the sample,
+    /// px, matched from consecutive frames; `None` for one new to the view.
+    pub displacements: Vec<Option<[f32; 2]>>,
     /// How many of `centres` are detections (the rest are virtual).
     pub detected: usize,
     /// Where the trapped sphere was seen (FOV px).

@@ -16,6 +16,7 @@ use service::AgentService;
 use state::DaemonState;
 use std::sync::Arc;
 use tokio::net::TcpListener;
+use tweezer_gym::Baseline;
 use tweezer_hardware_agent::config::AgentConfig;
 use tweezer_hardware_agent::control::HaltKind;
 use tweezer_hardware_agent::instrument::Instrument;
@@ -33,22 +34,21 @@ pub fn serve(
     config: AgentConfig,
     security: Security,
     twin: bool,
-    greedy: bool,
+    baseline: Option<Baseline>,
     json_logs: bool,
 ) -> anyhow::Result<()> {
     init_logging(json_logs);
     let listener_security = ServerSecurity::load(&security)?;
-    let policy = if greedy {
-        LoadedPolicy::greedy()
-    } else {
-        LoadedPolicy::load(&config.policy, &config.env, Some(&security))?
+    let policy = match baseline {
+        Some(baseline) => LoadedPolicy::baseline(baseline, &config.env),
+        None => LoadedPolicy::load(&config.policy, &config.env, Some(&security))?,
     };
     tracing::info!(policy = %policy.description, "policy loaded");
     let mut instrument = Instrument::open(&config, twin)?;
     let stopper = instrument.rig().stopper();
     let shared = Arc::new(DaemonState::new(stopper, &policy, instrument.overlay_len()));
     let follow = match config.policy.choice()? {
-        PolicyChoice::Follow(tag) if !greedy => Some(tag),
+        PolicyChoice::Follow(tag) if baseline.is_none() => Some(tag),
         _ => None,
     };
     let (jobs, thread) = ControlThread::spawn(

@@ -7,6 +7,7 @@ mod daemon;
 
 use clap::{Parser, Subcommand};
 use std::path::PathBuf;
+use tweezer_gym::Baseline;
 use tweezer_hardware_agent::config::AgentConfig;
 
 /// Tweezer RL hardware agent: drives the microscope's stages with a trained
@@ -50,8 +51,11 @@ enum Command {
         #[arg(long, value_name = "DX,DY", value_parser = tweezer_process::parse_pair, allow_hyphen_values = true)]
         target_um: Option<[f64; 2]>,
         /// Drive with the greedy baseline instead of the configured policy.
-        #[arg(long, conflicts_with = "snapshot")]
+        #[arg(long, conflicts_with_all = ["snapshot", "planner"])]
         greedy: bool,
+        /// Drive with the planner baseline instead of the configured policy.
+        #[arg(long, conflicts_with = "snapshot")]
+        planner: bool,
         /// Drive with this snapshot file instead of the configured policy.
         #[arg(long, value_name = "FILE")]
         snapshot: Option<PathBuf>,
@@ -66,8 +70,11 @@ enum Command {
         #[arg(long)]
         twin: bool,
         /// Start with the greedy baseline instead of the configured policy.
-        #[arg(long)]
+        #[arg(long, conflicts_with = "planner")]
         greedy: bool,
+        /// Start with the planner baseline instead of the configured policy.
+        #[arg(long)]
+        planner: bool,
         /// Address to listen on (overrides `service.listen`).
         #[arg(long, value_name = "ADDR")]
         listen: Option<std::net::SocketAddr>,
@@ -106,7 +113,8 @@ enum Command {
         /// The first episode seed.
         #[arg(long, default_value_t = 100_000)]
         seed: u64,
-        /// A trained snapshot to measure besides the greedy baseline.
+        /// A trained snapshot to measure besides the greedy and planner
+        /// baselines.
         #[arg(long, value_name = "FILE")]
         snapshot: Option<PathBuf>,
         /// Control rate on the twin, Hz (overrides `control.rate_hz`: the
@@ -121,6 +129,16 @@ enum Command {
     },
 }
 
+/// The baseline `--greedy` or `--planner` asks for (clap lets at most one
+/// through).
+fn baseline_flag(greedy: bool, planner: bool) -> Option<Baseline> {
+    match (greedy, planner) {
+        (true, _) => Some(Baseline::Greedy),
+        (_, true) => Some(Baseline::Planner),
+        _ => None,
+    }
+}
+
 fn main() -> anyhow::Result<()> {
     let cli = Cli::parse();
     let mut config = AgentConfig::load(cli.config.as_deref())?;
@@ -132,6 +150,7 @@ fn main() -> anyhow::Result<()> {
             seed,
             target_um,
             greedy,
+            planner,
             snapshot,
             overrides,
         } => {
@@ -141,7 +160,7 @@ fn main() -> anyhow::Result<()> {
                 episodes,
                 seed,
                 target_um,
-                greedy,
+                baseline: baseline_flag(greedy, planner),
                 snapshot,
             };
             let security = match tweezer_rpc::Security::load(cli.security.as_deref()) {
@@ -154,6 +173,7 @@ fn main() -> anyhow::Result<()> {
         Command::Serve {
             twin,
             greedy,
+            planner,
             listen,
             metrics_listen,
             overrides,
@@ -167,7 +187,13 @@ fn main() -> anyhow::Result<()> {
             }
             overrides.apply(&mut config)?;
             let security = tweezer_rpc::Security::load(cli.security.as_deref())?;
-            daemon::serve(config, security, twin, greedy, log_json)?;
+            daemon::serve(
+                config,
+                security,
+                twin,
+                baseline_flag(greedy, planner),
+                log_json,
+            )?;
         }
         Command::Segment { files, json } => commands::segment::run(&config, &files, json)?,
         Command::Bench {

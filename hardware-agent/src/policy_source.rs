@@ -1,5 +1,6 @@
 //! Where the agent's policy comes from: a learner over gRPC (its best,
-//! latest or a pinned snapshot), a snapshot file, or the greedy baseline.
+//! latest or a pinned snapshot), a snapshot file, or a baseline that needs no
+//! training (greedy, or the planner: a fallback on the instrument).
 //! Every snapshot is verified before use: its checksum, architecture and
 //! image resolution must match what this agent renders.
 
@@ -7,7 +8,7 @@ use burn::tensor::Device;
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
 use std::time::Duration;
-use tweezer_gym::{EnvConfig, Greedy, Policy};
+use tweezer_gym::{Baseline, EnvConfig, Policy};
 use tweezer_nets::{LoadError, NetworkPolicy, SnapshotInfo, file_sha256};
 use tweezer_proto::pb::learner_client::LearnerClient;
 use tweezer_proto::pb::snapshot_request::Selector;
@@ -24,6 +25,9 @@ pub enum PolicyKind {
     File,
     /// Straight at the target, blind to spheres (needs no training).
     Greedy,
+    /// The receding-horizon planner on the same observation (needs no
+    /// training).
+    Planner,
 }
 
 /// The `[policy]` table.
@@ -107,7 +111,8 @@ impl PolicyConfig {
         self.validate().map_err(PolicyError::Config)?;
         let snapshot = || SnapshotChoice::parse(&self.snapshot).map_err(PolicyError::Config);
         Ok(match self.source {
-            PolicyKind::Greedy => PolicyChoice::Greedy,
+            PolicyKind::Greedy => PolicyChoice::Baseline(Baseline::Greedy),
+            PolicyKind::Planner => PolicyChoice::Baseline(Baseline::Planner),
             PolicyKind::File => PolicyChoice::File(self.file.clone()),
             PolicyKind::Learner if self.follow => PolicyChoice::Follow(snapshot()?),
             PolicyKind::Learner => PolicyChoice::Learner(snapshot()?),
@@ -151,15 +156,15 @@ pub enum PolicyChoice {
     Follow(SnapshotChoice),
     /// A snapshot file.
     File(PathBuf),
-    /// The greedy baseline.
-    Greedy,
+    /// A baseline that needs no training.
+    Baseline(Baseline),
 }
 
 /// A policy the agent can drive with, and what it is.
 pub struct LoadedPolicy {
     /// The policy.
     pub policy: Box<dyn Policy + Send>,
-    /// Snapshot version (0 for the greedy baseline).
+    /// Snapshot version (0 for a baseline).
     pub version: u64,
     /// Where it came from, for status and records.
     pub description: String,
@@ -196,12 +201,12 @@ pub enum PolicyError {
 }
 
 impl LoadedPolicy {
-    /// The greedy baseline.
-    pub fn greedy() -> Self {
+    /// A baseline, for observations of `env`.
+    pub fn baseline(baseline: Baseline, env: &EnvConfig) -> Self {
         Self {
-            policy: Box::new(Greedy),
+            policy: baseline.policy(env),
             version: 0,
-            description: "greedy baseline".into(),
+            description: format!("{} baseline", baseline.name()),
         }
     }
 
@@ -230,7 +235,7 @@ impl LoadedPolicy {
             PolicyChoice::Follow(tag) => {
                 Self::choose(&PolicyChoice::Learner(*tag), config, env, security)
             }
-            PolicyChoice::Greedy => Ok(Self::greedy()),
+            PolicyChoice::Baseline(baseline) => Ok(Self::baseline(*baseline, env)),
             PolicyChoice::File(path) => {
                 Self::from_file_within(path, env, Duration::from_secs_f64(config.timeout_s))
             }

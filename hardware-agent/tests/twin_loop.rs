@@ -93,6 +93,32 @@ fn the_greedy_policy_reaches_the_target_on_the_twin_and_the_episode_is_recorded(
     assert!((trapped[0].as_f64().unwrap() - 640.0).abs() < 2.0);
     assert!((trapped[1].as_f64().unwrap() - 512.0).abs() < 2.0);
     assert_eq!(record.last().unwrap()["end"]["ending"], "success");
+    // Each frame's centres are matched to the last frame's with the stage's
+    // move taken out: the first frame's spheres are all new, and later most
+    // are matched, each moving no farther than a free sphere can (the
+    // stage moves 10 px per step along each axis at full speed).
+    let moves = |k: usize| {
+        record[k]["step"]["displacements"]
+            .as_array()
+            .unwrap()
+            .clone()
+    };
+    assert!(moves(1).iter().all(Value::is_null), "{:?}", moves(1));
+    let (mut matched, mut listed) = (0, 0);
+    for k in 2..record.len() - 1 {
+        for d in moves(k) {
+            listed += 1;
+            if let Some(d) = d.as_array() {
+                matched += 1;
+                let [x, y] = [0, 1].map(|a| d[a].as_f64().unwrap());
+                assert!(x.hypot(y) <= 2.0 * 2.0f64.hypot(2.0), "step {k}: {d:?}");
+            }
+        }
+    }
+    assert!(
+        listed > 200 && matched * 10 >= listed * 9,
+        "{matched} of {listed} centres matched"
+    );
     let picture = std::fs::read(episode["files"]["picture"].as_str().unwrap()).unwrap();
     assert!(picture.starts_with(b"\x89PNG"));
 }

@@ -11,7 +11,7 @@ use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
 use tweezer_config::{ConfigError, read_toml};
 use tweezer_gym::EnvConfig;
-use tweezer_nets::{Architecture, Pooling, SetShape};
+use tweezer_nets::{Architecture, Pooling, SetShape, SphereInputs};
 
 /// The whole file.
 #[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
@@ -199,6 +199,9 @@ pub struct SetNetworkConfig {
     pub pooling: Pooling,
     /// Most spheres a set holds; a scene with more keeps the nearest.
     pub max_spheres: usize,
+    /// `positions`, or `motion`: each sphere's displacement since the
+    /// previous step too.
+    pub inputs: SphereInputs,
 }
 
 impl Default for SetNetworkConfig {
@@ -210,6 +213,7 @@ impl Default for SetNetworkConfig {
             head_hidden: shape.head_hidden,
             pooling: shape.pooling,
             max_spheres: shape.max_spheres,
+            inputs: shape.inputs,
         }
     }
 }
@@ -228,6 +232,7 @@ impl NetworkConfig {
                 pooling: s.pooling,
                 max_spheres: s.max_spheres,
                 fov_px: env.fov_px,
+                inputs: s.inputs,
             }),
         }
     }

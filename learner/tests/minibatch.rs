@@ -1,12 +1,12 @@
 //! Sampled transitions become tensors whose images follow the renderer, or
-//! sets whose features follow the sphere sets.
+//! sets whose features follow the sphere sets, motion included.
 
 use burn::tensor::Device;
 use tweezer_gym::{EnvConfig, ImageConfig, RandomSteps, Renderer, SplitMix64};
 use tweezer_learner::minibatch::minibatch_tensors;
 use tweezer_learner::replay::SampledTransitions;
 use tweezer_learner::replay::{Replay, ReplayConfig};
-use tweezer_nets::{PaperNetworks, SetNetworks, SetShape};
+use tweezer_nets::{PaperNetworks, Scene, SetNetworks, SetShape, SphereInputs};
 
 fn sampled(config: &EnvConfig) -> SampledTransitions {
     let mut replay = Replay::new(ReplayConfig {
@@ -58,8 +58,14 @@ fn sampled_batches_render_into_tensors() {
 fn sampled_batches_become_sets_without_rendering() {
     let config = EnvConfig::default();
     let sampled = sampled(&config);
-    let networks = SetNetworks::new(SetShape::new(config.fov_px), config.fov_px);
+    let shape = SetShape {
+        inputs: SphereInputs::Motion,
+        ..SetShape::new(config.fov_px)
+    };
+    let networks = SetNetworks::new(shape, config.fov_px);
     let batch = minibatch_tensors(&sampled, &networks, &Device::flex());
+    let moving = sampled.displacements.iter().flatten().flatten().count();
+    assert!(moving > 0, "the replay keeps the spheres' displacements");
     let longest = sampled.centres.iter().map(Vec::len).max().unwrap();
     assert!(longest > 0, "a dense field shows spheres");
     let set = batch.input;
@@ -67,16 +73,17 @@ fn sampled_batches_become_sets_without_rendering() {
     let features: Vec<f32> = set.spheres.into_data().try_to_vec().unwrap();
     let slots: Vec<i64> = set.slots.into_data().convert::<i64>().try_to_vec().unwrap();
     let counts: Vec<f32> = set.counts.into_data().try_to_vec().unwrap();
-    let padding = (features.len() / 3) as i64;
+    let padding = (features.len() / 6) as i64;
     for (i, centres) in sampled.centres.iter().enumerate() {
-        let expected = networks.sets().features(centres);
+        let scene = Scene::new(centres, &sampled.displacements[i]);
+        let expected = networks.sets().features(scene);
         assert_eq!(counts[i], expected.len().max(1) as f32);
         for k in 0..longest {
             let slot = slots[i * longest + k];
             match expected.get(k) {
                 Some(f) => {
                     let row = slot as usize;
-                    assert_eq!(&features[row * 3..row * 3 + 3], &f[..]);
+                    assert_eq!(&features[row * 6..row * 6 + 6], &f[..]);
                 }
                 None => assert_eq!(slot, padding),
             }

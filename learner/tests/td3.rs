@@ -10,7 +10,7 @@ use tweezer_gym::{EnvConfig, ImageConfig, Renderer, SplitMix64};
 use tweezer_learner::td3::{
     Minibatch, Td3, Td3Config, smoothed_target_action, soft_update, td_target,
 };
-use tweezer_nets::{Networks, PaperNetworks, SetBatch, SetNetworks, SetShape};
+use tweezer_nets::{Networks, PaperNetworks, Scene, SetBatch, SetNetworks, SetShape};
 
 fn values<const D: usize>(t: Tensor<D>) -> Vec<f32> {
     t.into_data().try_to_vec::<f32>().unwrap()
@@ -120,7 +120,7 @@ fn set_batch(n: usize, networks: &SetNetworks, device: &Device) -> Minibatch<Set
                 .collect()
         })
         .collect();
-    let input = || networks.input(scenes.iter().map(Vec::as_slice), device);
+    let input = || networks.input(scenes.iter().map(|c| Scene::without_motion(c)), device);
     let pair = || Tensor::<2>::random([n, 2], Distribution::Uniform(-1.0, 1.0), device);
     Minibatch {
         input: input(),

@@ -66,6 +66,43 @@ impl Pooling {
     }
 }
 
+/// What the set network reads of each sphere: the observation's kind.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum SphereInputs {
+    /// Where it is: offset from the trap and distance.
+    #[default]
+    Positions,
+    /// Where it is and how it moved since the previous step (matched from
+    /// consecutive centres), or that it is new to the view.
+    Motion,
+}
+
+impl SphereInputs {
+    /// Its name in configs and snapshot metadata.
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::Positions => "positions",
+            Self::Motion => "motion",
+        }
+    }
+
+    /// The inputs called `name`.
+    pub fn from_name(name: &str) -> Option<Self> {
+        [Self::Positions, Self::Motion]
+            .into_iter()
+            .find(|i| i.name() == name)
+    }
+
+    /// Features per sphere.
+    pub fn features(self) -> usize {
+        match self {
+            Self::Positions => 3,
+            Self::Motion => 6,
+        }
+    }
+}
+
 /// The set network's hyper-parameters and the field of view its inputs
 /// are scaled by.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
@@ -82,12 +119,15 @@ pub struct SetShape {
     /// The field of view (px) it was trained on: sphere positions are
     /// scaled by half its width, whatever field a later scene spans.
     pub fov_px: [u32; 2],
+    /// What it reads of each sphere.
+    #[serde(default)]
+    pub inputs: SphereInputs,
 }
 
 impl SetShape {
     /// The default set network (the `lean` preset's) for a `fov_px` field:
     /// 64-wide per-sphere and head layers, max and mean pooling, the 32
-    /// nearest spheres.
+    /// nearest spheres, positions only.
     pub fn new(fov_px: [u32; 2]) -> Self {
         Self {
             sphere_hidden: 64,
@@ -95,6 +135,7 @@ impl SetShape {
             pooling: Pooling::MaxMean,
             max_spheres: 32,
             fov_px,
+            inputs: SphereInputs::Positions,
         }
     }
 }
@@ -143,6 +184,7 @@ impl Architecture {
                 ("max_spheres", s.max_spheres.to_string()),
                 ("fov_width", s.fov_px[0].to_string()),
                 ("fov_height", s.fov_px[1].to_string()),
+                ("inputs", s.inputs.name().to_string()),
             ],
         }
     }
@@ -174,6 +216,13 @@ impl Architecture {
                     .ok_or(ArchitectureError::Field("pooling"))?,
                 max_spheres: parse(&field, "max_spheres")?,
                 fov_px: [parse(&field, "fov_width")?, parse(&field, "fov_height")?],
+                // Snapshots from before motion was observed read positions.
+                inputs: match field("inputs") {
+                    None => SphereInputs::Positions,
+                    Some(name) => {
+                        SphereInputs::from_name(name).ok_or(ArchitectureError::Field("inputs"))?
+                    }
+                },
             }),
             other => return Err(ArchitectureError::Unknown(other.to_string())),
         };

@@ -32,6 +32,7 @@ mod spheres;
 pub use actor::{Actor, ActorConfig};
 pub use architecture::{
     Architecture, ArchitectureError, PAPER_ARCHITECTURE, Pooling, SET_ARCHITECTURE, SetShape,
+    SphereInputs,
 };
 pub use batch_conv::is_cpu_backend;
 pub use batch_linear::{FactoredGradient, FactoredGradientError};
@@ -45,4 +46,4 @@ pub use set_actor::{SetActor, SetActorConfig};
 pub use set_critic::{SetCritic, SetCriticConfig};
 pub use set_encoder::{SetEncoder, SetEncoderConfig};
 pub use snapshot::{SnapshotError, SnapshotInfo, decode, encode, file_sha256, read_info};
-pub use spheres::{SPHERE_FEATURES, SetBatch, SphereSets};
+pub use spheres::{MOTION_SCALE_PX, Scene, SetBatch, SphereSets};

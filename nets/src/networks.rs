@@ -11,7 +11,7 @@ use crate::images::render_images;
 use crate::set_actor::{SetActor, SetActorConfig};
 use crate::set_critic::{SetCritic, SetCriticConfig};
 use crate::set_encoder::SetEncoderConfig;
-use crate::spheres::{SetBatch, SphereSets};
+use crate::spheres::{Scene, SetBatch, SphereSets};
 use burn::module::{Module, ModuleDisplay};
 use burn::tensor::{Device, Tensor};
 use tweezer_config::ConfigError;
@@ -36,10 +36,10 @@ pub trait Networks: Clone + Send + Sync + 'static {
     /// A fresh critic on `device`.
     fn critic(&self, device: &Device) -> Self::Critic;
 
-    /// The input of each observation's sphere centres, as one batch.
+    /// The input of each observation's scene, as one batch.
     fn input<'a>(
         &self,
-        centres: impl ExactSizeIterator<Item = &'a [[f32; 2]]>,
+        scenes: impl ExactSizeIterator<Item = Scene<'a>>,
         device: &Device,
     ) -> Self::Input;
 
@@ -126,12 +126,13 @@ impl Networks for PaperNetworks {
         CriticConfig::new(self.encoder()).init(device)
     }
 
+    /// Images show where the spheres are, not how they move.
     fn input<'a>(
         &self,
-        centres: impl ExactSizeIterator<Item = &'a [[f32; 2]]>,
+        scenes: impl ExactSizeIterator<Item = Scene<'a>>,
         device: &Device,
     ) -> Tensor<4> {
-        render_images(&self.renderer, centres, device)
+        render_images(&self.renderer, scenes.map(|s| s.centres), device)
     }
 
     fn valid(input: Tensor<4>) -> Tensor<4> {
@@ -178,6 +179,7 @@ impl SetNetworks {
         SetEncoderConfig::new()
             .with_hidden(self.shape.sphere_hidden)
             .with_pooling(self.shape.pooling)
+            .with_inputs(self.shape.inputs)
     }
 
     /// How observations become sets.
@@ -209,10 +211,10 @@ impl Networks for SetNetworks {
 
     fn input<'a>(
         &self,
-        centres: impl ExactSizeIterator<Item = &'a [[f32; 2]]>,
+        scenes: impl ExactSizeIterator<Item = Scene<'a>>,
         device: &Device,
     ) -> SetBatch {
-        self.sets.batch(centres, device)
+        self.sets.batch(scenes, device)
     }
 
     fn valid(input: SetBatch) -> SetBatch {

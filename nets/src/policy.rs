@@ -4,6 +4,7 @@
 
 use crate::networks::{Networks, WithNetworks};
 use crate::snapshot::{SnapshotError, SnapshotInfo, decode, read_info};
+use crate::spheres::Scene;
 use burn::tensor::{Device, Tensor, TensorData};
 use std::path::Path;
 use tweezer_config::ConfigError;
@@ -128,8 +129,8 @@ impl<N: Networks> Policy for Inference<N> {
             return;
         }
         let vectors: Vec<f32> = observations.iter().flat_map(|o| o.vector).collect();
-        let centres = observations.iter().map(|o| o.centres.as_slice());
-        let input = self.networks.input(centres, &self.device);
+        let scenes = observations.iter().map(|o| Scene::of(o));
+        let input = self.networks.input(scenes, &self.device);
         let vector = Tensor::<2>::from_data(TensorData::new(vectors, [n, 2]), &self.device);
         let out: Vec<f32> = N::act(&self.actor, input, vector)
             .into_data()

@@ -5,8 +5,8 @@
 //! sum the mean divides by the set's size, and an empty set encodes as
 //! zeros.
 
-use crate::architecture::Pooling;
-use crate::spheres::{SPHERE_FEATURES, SetBatch};
+use crate::architecture::{Pooling, SphereInputs};
+use crate::spheres::SetBatch;
 use burn::config::Config;
 use burn::module::Module;
 use burn::nn::{Linear, LinearConfig};
@@ -31,13 +31,16 @@ pub struct SetEncoderConfig {
     /// How the per-sphere features are pooled.
     #[config(default = "Pooling::MaxMean")]
     pub pooling: Pooling,
+    /// What each sphere's row holds.
+    #[config(default = "SphereInputs::Positions")]
+    pub inputs: SphereInputs,
 }
 
 impl SetEncoderConfig {
     /// An encoder with freshly initialised weights on `device`.
     pub fn init(&self, device: &Device) -> SetEncoder {
         SetEncoder {
-            fc1: LinearConfig::new(SPHERE_FEATURES, self.hidden).init(device),
+            fc1: LinearConfig::new(self.inputs.features(), self.hidden).init(device),
             fc2: LinearConfig::new(self.hidden, self.hidden).init(device),
             pooling: self.pooling,
         }
@@ -51,8 +54,8 @@ impl SetEncoderConfig {
 
 impl SetEncoder {
     /// # Shapes
-    /// - `set`: see [`SetBatch`]: `[spheres, 3]` packed, `batch` sets of
-    ///   up to `width`
+    /// - `set`: see [`SetBatch`]: `[spheres, features]` packed, `batch`
+    ///   sets of up to `width`
     /// - output: `[batch, hidden]`, or `[batch, 2 * hidden]` for max and
     ///   mean (max first)
     pub fn forward(&self, set: SetBatch) -> Tensor<2> {

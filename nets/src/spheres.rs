@@ -1,15 +1,53 @@
 //! Observations → the padded sphere-set tensors the set networks take:
 //! each free sphere's position relative to the trap (the FOV centre),
 //! scaled by half the width of the field the network was trained on, and
-//! its distance, packed with where each lands in its set. No rendering: the
-//! replay's centres go in as they are.
+//! its distance; with [`SphereInputs::Motion`], also its displacement since
+//! the previous step and whether it is new to the view; packed with where
+//! each lands in its set. No rendering: the replay's centres go in as they
+//! are.
 
-use crate::architecture::SetShape;
+use crate::architecture::{SetShape, SphereInputs};
 use burn::module::Module;
 use burn::tensor::{Device, Int, Tensor, TensorData};
+use tweezer_gym::Observation;
 
-/// Features per sphere: x and y relative to the trap, and distance.
-pub const SPHERE_FEATURES: usize = 3;
+/// Px of displacement per unit of the motion features: a free sphere's
+/// largest speed per axis (`docs/spec.md` §2), so they span about ±1.
+pub const MOTION_SCALE_PX: f32 = 2.0;
+
+/// What a network reads of one observation besides the target vector.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Scene<'a> {
+    /// Free spheres' centres, FOV px.
+    pub centres: &'a [[f32; 2]],
+    /// Their displacements since the previous step (`None`: new to the
+    /// view); empty where none are known.
+    pub displacements: &'a [Option<[f32; 2]>],
+}
+
+impl<'a> Scene<'a> {
+    /// The scene of an observation.
+    pub fn of(observation: &'a Observation) -> Self {
+        Self::new(&observation.centres, &observation.displacements)
+    }
+
+    /// Centres with their displacements.
+    pub fn new(centres: &'a [[f32; 2]], displacements: &'a [Option<[f32; 2]>]) -> Self {
+        Self {
+            centres,
+            displacements,
+        }
+    }
+
+    /// Centres whose motion is unknown.
+    pub fn without_motion(centres: &'a [[f32; 2]]) -> Self {
+        Self::new(centres, &[])
+    }
+
+    fn displacement(&self, index: usize) -> Option<[f32; 2]> {
+        self.displacements.get(index).copied().flatten()
+    }
+}
 
 /// How observations become set tensors.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -20,6 +58,8 @@ pub struct SphereSets {
     scale_px: f32,
     /// The most spheres kept; an observation with more keeps the nearest.
     max_spheres: usize,
+    /// What each sphere's row holds.
+    inputs: SphereInputs,
 }
 
 /// A batch of sets: every sphere of the batch packed in one matrix (the
@@ -27,7 +67,7 @@ pub struct SphereSets {
 /// padded `[batch, width]` layout that pooling reads.
 #[derive(Clone, Debug)]
 pub struct SetBatch {
-    /// `[spheres, SPHERE_FEATURES]`: every sphere of the batch, in order
+    /// `[spheres, features]`: every sphere of the batch, in order
     /// (one row of zeros, which no slot reads, when the batch has none).
     pub spheres: Tensor<2>,
     /// `[batch width]` (Int): for each padded slot, its row in `spheres`,
@@ -68,64 +108,78 @@ impl SphereSets {
             trap_px: fov_px.map(|v| 0.5 * v as f32),
             scale_px: 0.5 * shape.fov_px[0] as f32,
             max_spheres: shape.max_spheres,
+            inputs: shape.inputs,
         }
     }
 
-    /// The features of `centres` (FOV px), nearest first and at most
-    /// `max_spheres`, as rows of [`SPHERE_FEATURES`].
-    pub fn features(&self, centres: &[[f32; 2]]) -> Vec<[f32; SPHERE_FEATURES]> {
-        let mut relative: Vec<[f32; SPHERE_FEATURES]> = centres
+    /// The features of a scene's spheres, nearest first and at most
+    /// `max_spheres`, one row of [`SphereInputs::features`] values each:
+    /// position and distance, then (with motion) the displacement over
+    /// [`MOTION_SCALE_PX`] and 1 for a sphere new to the view (whose
+    /// displacement reads 0).
+    pub fn features(&self, scene: Scene) -> Vec<Vec<f32>> {
+        let mut rows: Vec<Vec<f32>> = scene
+            .centres
             .iter()
-            .map(|c| {
+            .enumerate()
+            .map(|(k, c)| {
                 let dx = (c[0] - self.trap_px[0]) / self.scale_px;
                 let dy = (c[1] - self.trap_px[1]) / self.scale_px;
-                [dx, dy, dx.hypot(dy)]
+                let mut row = Vec::with_capacity(self.inputs.features());
+                row.extend([dx, dy, dx.hypot(dy)]);
+                if self.inputs == SphereInputs::Motion {
+                    match scene.displacement(k) {
+                        Some([mx, my]) => {
+                            row.extend([mx / MOTION_SCALE_PX, my / MOTION_SCALE_PX, 0.0]);
+                        }
+                        None => row.extend([0.0, 0.0, 1.0]),
+                    }
+                }
+                row
             })
             .collect();
-        if relative.len() > self.max_spheres {
-            relative.sort_by(|a, b| a[2].total_cmp(&b[2]));
-            relative.truncate(self.max_spheres);
+        if rows.len() > self.max_spheres {
+            rows.sort_by(|a, b| a[2].total_cmp(&b[2]));
+            rows.truncate(self.max_spheres);
         }
-        relative
+        rows
     }
 
-    /// The padded sets of each observation's centres, on `device`, padded
-    /// only as far as the batch's largest set.
+    /// The padded sets of each scene, on `device`, padded only as far as
+    /// the batch's largest set.
     pub fn batch<'a>(
         &self,
-        centres: impl ExactSizeIterator<Item = &'a [[f32; 2]]>,
+        scenes: impl ExactSizeIterator<Item = Scene<'a>>,
         device: &Device,
     ) -> SetBatch {
-        self.batch_padded(centres, 1, device)
+        self.batch_padded(scenes, 1, device)
     }
 
     /// As [`Self::batch`], padded to at least `min_len` spheres.
     pub fn batch_padded<'a>(
         &self,
-        centres: impl ExactSizeIterator<Item = &'a [[f32; 2]]>,
+        scenes: impl ExactSizeIterator<Item = Scene<'a>>,
         min_len: usize,
         device: &Device,
     ) -> SetBatch {
-        let sets: Vec<_> = centres.map(|c| self.features(c)).collect();
+        let per_sphere = self.inputs.features();
+        let sets: Vec<_> = scenes.map(|s| self.features(s)).collect();
         let width = sets.iter().map(Vec::len).max().unwrap_or(0).max(min_len);
         let packed = sets.iter().map(Vec::len).sum::<usize>().max(1);
-        let mut features = Vec::with_capacity(packed * SPHERE_FEATURES);
+        let mut features = Vec::with_capacity(packed * per_sphere);
         let mut slots = vec![packed as i64; sets.len() * width];
         let mut counts = Vec::with_capacity(sets.len());
         for (b, set) in sets.iter().enumerate() {
             for (k, f) in set.iter().enumerate() {
-                slots[b * width + k] = (features.len() / SPHERE_FEATURES) as i64;
+                slots[b * width + k] = (features.len() / per_sphere) as i64;
                 features.extend_from_slice(f);
             }
             counts.push(set.len().max(1) as f32);
         }
-        features.resize(packed * SPHERE_FEATURES, 0.0);
+        features.resize(packed * per_sphere, 0.0);
         let n = sets.len();
         SetBatch {
-            spheres: Tensor::from_data(
-                TensorData::new(features, [packed, SPHERE_FEATURES]),
-                device,
-            ),
+            spheres: Tensor::from_data(TensorData::new(features, [packed, per_sphere]), device),
             slots: Tensor::from_data(TensorData::new(slots, [n * width]), device),
             counts: Tensor::from_data(TensorData::new(counts, [n, 1]), device),
             width,

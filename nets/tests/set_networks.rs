@@ -4,8 +4,8 @@
 use burn::tensor::{Device, Tensor, TensorData};
 use tweezer_gym::SplitMix64;
 use tweezer_nets::{
-    Pooling, SetActor, SetActorConfig, SetCritic, SetCriticConfig, SetEncoderConfig, SetShape,
-    SphereSets,
+    MOTION_SCALE_PX, Pooling, Scene, SetActor, SetActorConfig, SetCritic, SetCriticConfig,
+    SetEncoderConfig, SetShape, SphereInputs, SphereSets,
 };
 
 const FOV: [u32; 2] = [320, 256];
@@ -57,7 +57,10 @@ fn outputs(
         let v: Vec<f32> = (0..n).flat_map(|k| [0.3, -0.2 + 0.1 * k as f32]).collect();
         Tensor::<2>::from_data(TensorData::new(v, [n, 2]), device)
     };
-    let batch = || sets.batch_padded(scenes.iter().map(Vec::as_slice), pad, device);
+    let batch = || {
+        let scenes = scenes.iter().map(|c| Scene::without_motion(c));
+        sets.batch_padded(scenes, pad, device)
+    };
     let action = actor.forward(batch(), vector());
     let q = critic.forward(batch(), vector(), action.clone());
     let values = |t: Tensor<2>| t.into_data().try_to_vec::<f32>().unwrap();
@@ -111,7 +114,8 @@ fn padding_changes_nothing_and_an_empty_field_of_view_is_a_valid_input() {
 
 #[test]
 fn a_crowded_field_of_view_keeps_the_nearest_spheres() {
-    let features = sets(2, FOV).features(&[[0.0, 0.0], [170.0, 128.0], [160.0, 148.0]]);
+    let centres = [[0.0, 0.0], [170.0, 128.0], [160.0, 148.0]];
+    let features = sets(2, FOV).features(Scene::without_motion(&centres));
     assert_eq!(features.len(), 2);
     // (10, 0) and (0, 20) px from the trap, over half the FOV width.
     assert_close(&features[0], &[10.0 / 160.0, 0.0, 10.0 / 160.0], "nearest");
@@ -123,12 +127,44 @@ fn a_wider_field_of_view_keeps_the_trained_scale() {
     // A sphere 10 px right of the trap reads the same in a field twice as
     // wide: the trap moves to the new centre, the scale stays the trained
     // one.
-    let wide = sets(32, [640, 512]).features(&[[330.0, 256.0], [0.0, 0.0]]);
-    let trained = sets(32, FOV).features(&[[170.0, 128.0]]);
+    let wide = sets(32, [640, 512]).features(Scene::without_motion(&[[330.0, 256.0], [0.0, 0.0]]));
+    let trained = sets(32, FOV).features(Scene::without_motion(&[[170.0, 128.0]]));
     assert_close(&wide[0], &trained[0], "same offset");
     assert_close(
         &wide[1],
         &[-2.0, -1.6, 2.0f32.hypot(1.6)],
         "beyond the trained field",
     );
+}
+
+#[test]
+fn motion_reads_each_displacement_and_flags_newcomers() {
+    let shape = SetShape {
+        inputs: SphereInputs::Motion,
+        ..SetShape::new(FOV)
+    };
+    let sets = SphereSets::new(&shape, FOV);
+    let centres = [[170.0, 128.0], [160.0, 148.0]];
+    let features = sets.features(Scene::new(&centres, &[Some([1.0, -2.0]), None]));
+    let step = MOTION_SCALE_PX;
+    assert_close(
+        &features[0],
+        &[
+            10.0 / 160.0,
+            0.0,
+            10.0 / 160.0,
+            1.0 / step,
+            -2.0 / step,
+            0.0,
+        ],
+        "tracked",
+    );
+    assert_close(
+        &features[1],
+        &[0.0, 20.0 / 160.0, 20.0 / 160.0, 0.0, 0.0, 1.0],
+        "new",
+    );
+    // Motion unknown: every sphere is new.
+    let unknown = sets.features(Scene::without_motion(&centres));
+    assert!(unknown.iter().all(|row| row[3..] == [0.0, 0.0, 1.0]));
 }

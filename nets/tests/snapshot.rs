@@ -6,7 +6,7 @@ use std::collections::HashMap;
 use tweezer_gym::{EnvConfig, ImageConfig, Observation, Policy, Renderer};
 use tweezer_nets::{
     Architecture, NetworkPolicy, Networks, PaperNetworks, Pooling, SetNetworks, SetShape,
-    SnapshotError, SnapshotInfo, decode, encode, file_sha256, read_info,
+    SnapshotError, SnapshotInfo, SphereInputs, decode, encode, file_sha256, read_info,
 };
 
 fn env(width: u32, height: u32) -> EnvConfig {
@@ -52,10 +52,11 @@ fn observations() -> Vec<Observation> {
         Observation {
             centres: vec![[600.0, 500.0], [700.0, 560.0], [10.0, 1000.0]],
             vector: [0.6, -0.8],
+            ..Observation::default()
         },
         Observation {
-            centres: vec![],
             vector: [-0.1, 0.3],
+            ..Observation::default()
         },
     ]
 }
@@ -101,6 +102,7 @@ fn a_set_snapshot_round_trips_with_its_hyper_parameters() {
         pooling: Pooling::Max,
         max_spheres: 9,
         fov_px: [1280, 1024],
+        inputs: SphereInputs::Motion,
     };
     let networks = set(shape);
     let (actor, bytes) = snapshot(&networks, &device);
@@ -144,6 +146,15 @@ fn mismatched_architectures_are_refused_naming_what_differs() {
         differences,
         "sphere_hidden 64 vs 128, pooling max_mean vs mean"
     );
+    // A network that reads motion refuses one trained on positions alone.
+    let moving = SetShape {
+        inputs: SphereInputs::Motion,
+        ..shape
+    };
+    let err = decode(&sets, &set(moving), &device)
+        .unwrap_err()
+        .to_string();
+    assert!(err.ends_with("inputs positions vs motion"), "{err}");
     let err = decode(&sets, &paper(80, 64), &device)
         .unwrap_err()
         .to_string();

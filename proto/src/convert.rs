@@ -43,8 +43,23 @@ pub fn observation_from_wire(
             format!("odd length {}: centres are (x, y) pairs", msg.centres.len()),
         ));
     }
+    if !msg.displacements.is_empty() && msg.displacements.len() != msg.centres.len() {
+        return Err(WireError::new(
+            &format!("{field}.displacements"),
+            format!(
+                "{} values for {} centre coordinates: give none, or one (dx, dy) pair per centre",
+                msg.displacements.len(),
+                msg.centres.len()
+            ),
+        ));
+    }
     let observation = Observation {
         centres: msg.centres.chunks_exact(2).map(|c| [c[0], c[1]]).collect(),
+        displacements: msg
+            .displacements
+            .chunks_exact(2)
+            .map(|d| (!(d[0].is_nan() && d[1].is_nan())).then_some([d[0], d[1]]))
+            .collect(),
         vector: [msg.vector_x, msg.vector_y],
     };
     observation
@@ -57,6 +72,11 @@ pub fn observation_from_wire(
 pub fn observation_to_wire(observation: &Observation) -> pb::Observation {
     pb::Observation {
         centres: observation.centres.iter().flatten().copied().collect(),
+        displacements: observation
+            .displacements
+            .iter()
+            .flat_map(|d| d.unwrap_or([f32::NAN; 2]))
+            .collect(),
         vector_x: observation.vector[0],
         vector_y: observation.vector[1],
     }
@@ -251,6 +271,7 @@ mod tests {
     fn observation() -> Observation {
         Observation {
             centres: vec![[10.0, 20.0], [-5.5, 1030.25]],
+            displacements: vec![None, Some([1.5, -2.25])],
             vector: [0.6, -0.8],
         }
     }
@@ -271,8 +292,8 @@ mod tests {
         Some(EpisodeEnd {
             outcome,
             final_observation: Observation {
-                centres: vec![],
                 vector: [0.0, 0.01],
+                ..Observation::default()
             },
         })
     }
@@ -315,6 +336,15 @@ mod tests {
 
         let mut m = good.clone();
         m.observation.as_mut().unwrap().centres[0] = 5000.0;
+        assert_eq!(field_of(&m), "steps[4].observation");
+
+        let mut m = good.clone();
+        m.observation.as_mut().unwrap().displacements.pop();
+        assert_eq!(field_of(&m), "steps[4].observation.displacements");
+
+        // One coordinate of a pair NaN is no new sphere, but a bad move.
+        let mut m = good.clone();
+        m.observation.as_mut().unwrap().displacements[2] = f32::NAN;
         assert_eq!(field_of(&m), "steps[4].observation");
 
         let mut m = good.clone();

@@ -54,7 +54,8 @@ def paper_actor(t, images, vectors):
 
 
 def set_actor(t, pooling, sets, vectors):
-    """sets: one [n_i, 3] array of sphere features per observation;
+    """sets: one [n_i, 3] (positions) or [n_i, 6] (motion) array of sphere
+    features per observation;
     vectors: [batch, 2] → actions [batch, 2]."""
     pooled = []
     hidden = t["encoder.fc2.weight"].shape[1]

@@ -17,6 +17,9 @@ FIELDS = {
     SET: ("sphere_hidden", "head_hidden", "pooling", "max_spheres", "fov_width", "fov_height"),
 }
 POOLINGS = ("max_mean", "max", "mean")
+# What a set network reads of each sphere; snapshots without the field read
+# positions.
+INPUTS = ("positions", "motion")
 MAX_SIZE = 1 << 16
 
 
@@ -31,7 +34,8 @@ class Snapshot:
     architecture: str
     """`tweezer-paper-actor-v1` (the paper's CNN) or `tweezer-set-actor-v1`."""
     fields: dict
-    """Its hyper-parameters: ints, and `pooling` as a name."""
+    """Its hyper-parameters: ints, and `pooling` and (set network) `inputs`
+    as names."""
     version: int
     training_step: int
     tensors: dict = field(repr=False)
@@ -84,6 +88,13 @@ def read(path):
         if not 1 <= value <= MAX_SIZE:
             raise SnapshotError(f"architecture field `{key}` = {value}: must lie in [1, 65536]")
         fields[key] = value
+    if name == SET:
+        inputs = metadata.get("inputs", "positions")
+        if inputs not in INPUTS:
+            raise SnapshotError(
+                f"architecture field `inputs` = {inputs!r}: this package reads {', '.join(INPUTS)}"
+            )
+        fields["inputs"] = inputs
     for tensor, array in tensors.items():
         if array.dtype != np.float32:
             raise SnapshotError(f"snapshot tensor `{tensor}`: dtype {array.dtype}, expected float32")

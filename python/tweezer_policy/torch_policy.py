@@ -54,8 +54,9 @@ class TorchActor(torch.nn.Module):
         else:
             pooled = []
             hidden = self._t("encoder.fc2.weight").shape[0]
+            width = self._t("encoder.fc1.weight").shape[1]
             for features in inputs:
-                f = torch.as_tensor(np.asarray(features, dtype=np.float32).reshape(-1, 3))
+                f = torch.as_tensor(np.asarray(features, dtype=np.float32).reshape(-1, width))
                 if len(f):
                     h = F.relu(self._linear("encoder.fc2", F.relu(self._linear("encoder.fc1", f))))
                     biggest, mean = h.max(0).values, h.sum(0) / len(f)

@@ -3,8 +3,9 @@ policy (tests/tests/python_policy.rs):
 
   policy_check.py observations OUT.jsonl --fov W H --seed S --count N
       writes N observations: centres drawn over the field of view and just
-      beyond its edges (0 to 40 of them, some sets empty), target vectors
-      of every length up to 1
+      beyond its edges (0 to 40 of them, some sets empty), each with a
+      displacement (a fifth of them new to the view), target vectors of
+      every length up to 1
   policy_check.py compare SNAPSHOT OBS.jsonl RUST.jsonl --fov W H
       loads the snapshot with the package, computes its actions for the
       observations with NumPy (and PyTorch where it is installed) and
@@ -29,8 +30,14 @@ def observations(args):
             centres = rng.uniform([-margin, -margin], [w + margin, h + margin], size=(n, 2))
             angle, length = rng.uniform(0, 2 * np.pi), rng.uniform(0, 1)
             vector = [length * np.cos(angle), length * np.sin(angle)]
+            moves = rng.uniform(-2.8, 2.8, size=(n, 2))
+            new = rng.uniform(size=n) < 0.2
             line = {
                 "centres": [[float(np.float32(x)), float(np.float32(y))] for x, y in centres],
+                "displacements": [
+                    None if fresh else [float(np.float32(x)), float(np.float32(y))]
+                    for (x, y), fresh in zip(moves, new)
+                ],
                 "vector": [float(np.float32(v)) for v in vector],
             }
             out.write(json.dumps(line) + "\n")
@@ -39,6 +46,7 @@ def observations(args):
 def compare(args):
     lines = [json.loads(line) for line in open(args.observations)]
     centres = [np.asarray(o["centres"], dtype=np.float32).reshape(-1, 2) for o in lines]
+    displacements = [o["displacements"] for o in lines]
     vectors = np.asarray([o["vector"] for o in lines], dtype=np.float32)
     rust = np.asarray([json.loads(line)["action"] for line in open(args.rust)], dtype=np.float32)
     report = {}
@@ -51,12 +59,13 @@ def compare(args):
         report["torch"] = "not installed"
     for backend in backends:
         policy = tweezer_policy.load(args.snapshot, fov_px=tuple(args.fov), backend=backend)
-        actions = np.clip(policy.act(centres, vectors), -1.0, 1.0)
+        actions = np.clip(policy.act(centres, vectors, displacements), -1.0, 1.0)
         if actions.shape != rust.shape:
             sys.exit(f"{backend}: {actions.shape} actions, Rust gave {rust.shape}")
         report[backend] = float(np.abs(actions - rust).max())
     snapshot = tweezer_policy.read(args.snapshot)
     report["architecture"] = snapshot.architecture
+    report["inputs"] = snapshot.fields.get("inputs")
     report["version"] = snapshot.version
     report["actions"] = len(rust)
     report["unsaturated"] = int((np.abs(rust) < 0.99).sum())

@@ -354,8 +354,8 @@ fn alignment(policy: &mut NetworkPolicy) -> Vec<f32> {
         .map(|k| {
             let angle = k as f32 * std::f32::consts::FRAC_PI_4 + 0.3;
             Observation {
-                centres: vec![],
                 vector: [0.8 * angle.cos(), 0.8 * angle.sin()],
+                ..Observation::default()
             }
         })
         .collect();

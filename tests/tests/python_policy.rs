@@ -1,8 +1,9 @@
 //! The Python policy package (`python/`, installed from its own
 //! `pyproject.toml` into a fresh venv) loads snapshots of both
 //! architectures trained by a short real run (a learner and an actor over
-//! gRPC), and its actions for unseen observations match the Rust policy's
-//! (`actor act`) to 1e-4; it refuses a snapshot whose weights were altered.
+//! gRPC; the set network reads motion), and its actions for unseen
+//! observations match the Rust policy's (`actor act`) to 1e-4; it refuses a
+//! snapshot whose weights were altered.
 
 use std::path::{Path, PathBuf};
 use std::process::Command;
@@ -109,7 +110,7 @@ fn python_loads_trained_snapshots_of_both_architectures_and_acts_as_rust_does() 
         ("paper", ""),
         (
             "set",
-            "[learner.network]\nkind = \"set\"\nsphere_hidden = 32\n",
+            "[learner.network]\nkind = \"set\"\nsphere_hidden = 32\ninputs = \"motion\"\n",
         ),
     ] {
         let work = dir.path().join(name);
@@ -175,6 +176,9 @@ fn python_loads_trained_snapshots_of_both_architectures_and_acts_as_rust_does() 
                 "{name}: {report}"
             );
             assert_eq!(report["architecture"], architecture);
+            if name == "set" {
+                assert_eq!(report["inputs"], "motion", "{report}");
+            }
             unsaturated += report["unsaturated"].as_u64().unwrap();
         }
         // Most actions are inside (-1, 1), where any difference would show.

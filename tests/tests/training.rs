@@ -230,7 +230,12 @@ fn sigint_stops_a_one_command_run_with_a_loadable_final_checkpoint() {
     assert_eq!(summary["interrupted"], true, "{outcome}");
     assert!(summary["updates"].as_u64().unwrap() > 0, "{outcome}");
     let rows = outcome["report"]["rows"].as_array().unwrap();
-    assert_eq!(rows.len(), 2, "the best snapshot and greedy: {summary}");
+    let policies: Vec<&str> = rows.iter().map(|r| r["policy"].as_str().unwrap()).collect();
+    assert_eq!(
+        policies[1..],
+        ["greedy", "planner"],
+        "the best snapshot, greedy and the planner: {summary}"
+    );
     for file in [
         "train.toml",
         "config.toml",
@@ -290,10 +295,10 @@ fn a_sweep_trains_each_run_in_turn_and_reports_them_together() {
     let policies: Vec<&str> = rows.iter().map(|r| r["policy"].as_str().unwrap()).collect();
     assert_eq!(
         policies.len(),
-        3,
-        "two best snapshots and greedy: {policies:?}"
+        4,
+        "two best snapshots, greedy and the planner: {policies:?}"
     );
-    assert_eq!(policies[2], "greedy");
+    assert_eq!(policies[2..], ["greedy", "planner"]);
     let fig4 = std::fs::read_to_string(out.join("report/fig4-reward.svg")).unwrap();
     assert!(fig4.contains("gamma 0.8 (2 runs)"), "the runs are averaged");
 }

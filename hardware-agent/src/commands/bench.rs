@@ -8,6 +8,7 @@ mod control_loop;
 use control_loop::{Comparison, compare};
 use serde_json::json;
 use std::path::PathBuf;
+use tweezer_gym::Baseline;
 use tweezer_hardware_agent::config::AgentConfig;
 use tweezer_hardware_agent::policy_source::LoadedPolicy;
 use tweezer_hardware_agent::twin::{
@@ -129,20 +130,19 @@ pub fn run(config: &AgentConfig, args: &BenchArgs) -> anyhow::Result<()> {
     Ok(())
 }
 
-/// The greedy baseline, then the snapshot if given, on the twin and in
-/// the virtual environment.
+/// The greedy and planner baselines, then the snapshot if given, on the
+/// twin and in the virtual environment.
 fn loop_comparisons(config: &AgentConfig, args: &BenchArgs) -> anyhow::Result<Vec<Comparison>> {
     if args.episodes == 0 {
         return Ok(Vec::new());
     }
     let seeds: Vec<u64> = (args.seed..args.seed + args.episodes).collect();
     let records = tempfile::tempdir()?;
-    let mut out = vec![compare(
-        config,
-        &|| Ok(LoadedPolicy::greedy()),
-        &seeds,
-        records.path(),
-    )?];
+    let mut out = Vec::new();
+    for baseline in [Baseline::Greedy, Baseline::Planner] {
+        let load = || Ok(LoadedPolicy::baseline(baseline, &config.env));
+        out.push(compare(config, &load, &seeds, records.path())?);
+    }
     if let Some(snapshot) = &args.snapshot {
         let load = || Ok(LoadedPolicy::from_file(snapshot, &config.env)?);
         out.push(compare(config, &load, &seeds, records.path())?);

@@ -4,6 +4,7 @@
 use anyhow::{Context, bail};
 use serde_json::json;
 use std::path::PathBuf;
+use tweezer_gym::Baseline;
 use tweezer_hardware_agent::config::AgentConfig;
 use tweezer_hardware_agent::control::{Halt, HaltKind};
 use tweezer_hardware_agent::instrument::Instrument;
@@ -23,8 +24,8 @@ pub struct RunArgs {
     /// Target relative to the trap, µm (image axes); the twin draws one
     /// from the seed otherwise.
     pub target_um: Option<[f64; 2]>,
-    /// The greedy baseline instead of the configured policy.
-    pub greedy: bool,
+    /// A baseline instead of the configured policy.
+    pub baseline: Option<Baseline>,
     /// A snapshot file instead of the configured policy.
     pub snapshot: Option<PathBuf>,
 }
@@ -36,12 +37,12 @@ pub fn run(config: &AgentConfig, args: RunArgs, security: Option<&Security>) -> 
     if !args.twin && args.target_um.is_none() {
         bail!("on the instrument, give the target: --target-um DX,DY");
     }
-    let mut policy = match (args.greedy, args.snapshot) {
-        (true, _) => LoadedPolicy::greedy(),
-        (false, Some(file)) => {
+    let mut policy = match (args.baseline, args.snapshot) {
+        (Some(baseline), _) => LoadedPolicy::baseline(baseline, &config.env),
+        (None, Some(file)) => {
             LoadedPolicy::choose(&PolicyChoice::File(file), &config.policy, &config.env, None)?
         }
-        (false, None) => LoadedPolicy::load(&config.policy, &config.env, security)?,
+        (None, None) => LoadedPolicy::load(&config.policy, &config.env, security)?,
     };
     tracing::info!(policy = %policy.description, "policy loaded");
     let mut instrument = Instrument::open(config, args.twin)?;

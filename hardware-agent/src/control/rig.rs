@@ -7,7 +7,7 @@ use kdc101::apt::StopMode;
 use kdc101::{StagePair, Stopper};
 use std::io::{Read, Write};
 use std::time::{Duration, Instant};
-use tweezer_gym::{Action, EnvConfig, Observation, ObservationBounds, Policy};
+use tweezer_gym::{Action, EnvConfig, Observation, ObservationBounds, Policy, SphereTracker};
 use tweezer_vision::Camera;
 use tweezer_vision::{Detection, SegmentError, Segmenter};
 
@@ -175,6 +175,7 @@ impl<C: Camera, P: Read + Write + Send + 'static> Rig<C, P> {
         let mut next = started;
         let mut lost = 0;
         let mut observation = Observation::default();
+        let mut tracker = SphereTracker::for_config(&self.env);
         let mut action = [Action::ZERO];
         loop {
             halt.wait_until(next);
@@ -221,6 +222,11 @@ impl<C: Camera, P: Read + Write + Send + 'static> Rig<C, P> {
             let detected = observation.centres.len();
             self.overlay
                 .visible(position, [fw, fh], radius, &mut observation.centres);
+            tracker.track(
+                &observation.centres,
+                position,
+                &mut observation.displacements,
+            );
             let remaining = [target_px[0] - position[0], target_px[1] - position[1]];
             // Scored as the virtual environment scores a step: collision
             // (with a free sphere or a virtual obstacle) first, then
@@ -286,6 +292,7 @@ impl<C: Camera, P: Read + Write + Send + 'static> Rig<C, P> {
                 step: progress.steps,
                 time_s: (tick - started).as_secs_f64(),
                 centres: observation.centres.clone(),
+                displacements: observation.displacements.clone(),
                 detected,
                 trapped: detections[trapped].centre.map(|v| v as f32),
                 vector: observation.vector,

@@ -326,6 +326,7 @@ fn report_step(shared: &DaemonState, episode: u64, policy_version: u64, log: &St
     }
     let observation = Observation {
         centres: log.centres.clone(),
+        displacements: log.displacements.clone(),
         vector: log.vector,
     };
     let action = Action::clipped(log.action[0], log.action[1]).unwrap_or(Action::ZERO);

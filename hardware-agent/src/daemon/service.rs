@@ -11,6 +11,7 @@ use tokio::sync::{broadcast, mpsc, oneshot};
 use tokio_stream::Stream;
 use tokio_stream::wrappers::ReceiverStream;
 use tonic::{Request, Response, Status as RpcStatus};
+use tweezer_gym::Baseline;
 use tweezer_hardware_agent::control::{Ending, HaltKind};
 use tweezer_hardware_agent::overlay::{MAX_DISCS, OverlaySpec, Wall};
 use tweezer_hardware_agent::policy_source::{PolicyChoice, SnapshotChoice};
@@ -180,10 +181,11 @@ impl HardwareAgent for AgentService {
                 ));
             }
             Some(Source::File(f)) if !f.is_empty() => PolicyChoice::File(f.into()),
-            Some(Source::Greedy(true)) => PolicyChoice::Greedy,
+            Some(Source::Greedy(true)) => PolicyChoice::Baseline(Baseline::Greedy),
+            Some(Source::Planner(true)) => PolicyChoice::Baseline(Baseline::Planner),
             _ => {
                 return Err(RpcStatus::invalid_argument(
-                    "source: give learner_snapshot, file or greedy = true",
+                    "source: give learner_snapshot, file, greedy = true or planner = true",
                 ));
             }
         };

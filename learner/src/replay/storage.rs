@@ -1,4 +1,5 @@
-//! Compact FIFO storage of step records and their sphere centres.
+//! Compact FIFO storage of step records and their sphere centres, each with
+//! its displacement since the previous step.
 
 use serde::{Deserialize, Serialize};
 use std::collections::{HashMap, VecDeque};
@@ -78,6 +79,8 @@ struct Pending {
 pub struct SampledTransitions {
     /// Centres of each observation.
     pub centres: Vec<Vec<[f32; 2]>>,
+    /// Their displacements (`None`: new to the view), one per centre.
+    pub displacements: Vec<Vec<Option<[f32; 2]>>>,
     /// Target vectors, `[batch, 2]` row-major.
     pub vectors: Vec<f32>,
     /// Actions, `[batch, 2]`.
@@ -88,6 +91,8 @@ pub struct SampledTransitions {
     pub terminated: Vec<f32>,
     /// Centres of each next observation.
     pub next_centres: Vec<Vec<[f32; 2]>>,
+    /// Their displacements.
+    pub next_displacements: Vec<Vec<Option<[f32; 2]>>>,
     /// Next target vectors, `[batch, 2]`.
     pub next_vectors: Vec<f32>,
 }
@@ -102,6 +107,8 @@ pub struct Replay {
     /// Sphere centres of the records, in the same order; the front has
     /// global index `first_centre`.
     centres: VecDeque<[f32; 2]>,
+    /// Each centre's displacement, NaN for none, in step with `centres`.
+    displacements: VecDeque<[f32; 2]>,
     first_centre: u64,
     pending: HashMap<(Source, u32), Pending>,
     /// Size of `pending` at which entries whose record is gone are swept.
@@ -118,6 +125,7 @@ impl Replay {
             records: VecDeque::new(),
             first_id: 0,
             centres: VecDeque::new(),
+            displacements: VecDeque::new(),
             first_centre: 0,
             pending: HashMap::new(),
             sweep_pending_at: MIN_PENDING_SWEEP,
@@ -158,7 +166,7 @@ impl Replay {
     /// Bytes of memory the replay's storage occupies now.
     pub fn bytes(&self) -> usize {
         self.records.capacity() * size_of::<Record>()
-            + self.centres.capacity() * size_of::<[f32; 2]>()
+            + (self.centres.capacity() + self.displacements.capacity()) * size_of::<[f32; 2]>()
             + self.pending.capacity() * (size_of::<(Source, u32)>() + size_of::<Pending>() + 8)
     }
 
@@ -176,6 +184,10 @@ impl Replay {
         let id = self.first_id + self.records.len() as u64;
         let centres_at = self.first_centre + self.centres.len() as u64;
         self.centres.extend(observation.centres.iter().copied());
+        self.displacements.extend(
+            (0..observation.centres.len())
+                .map(|k| observation.displacement(k).unwrap_or([f32::NAN; 2])),
+        );
         let (action, reward, terminated) = match step {
             Some((s, terminated)) => (s.action.components(), s.reward, terminated),
             None => ([0.0; 2], 0.0, false),
@@ -270,6 +282,7 @@ impl Replay {
             }
             let n = usize::from(oldest.centres_len);
             self.centres.drain(..n);
+            self.displacements.drain(..n);
             self.first_centre += n as u64;
         }
         // Each live entry names a distinct held record, so after a sweep at
@@ -283,11 +296,23 @@ impl Replay {
     }
 
     fn centres_of(&self, record: &Record) -> Vec<[f32; 2]> {
-        let start = (record.centres_at - self.first_centre) as usize;
         self.centres
-            .range(start..start + usize::from(record.centres_len))
+            .range(self.spheres_of(record))
             .copied()
             .collect()
+    }
+
+    fn displacements_of(&self, record: &Record) -> Vec<Option<[f32; 2]>> {
+        self.displacements
+            .range(self.spheres_of(record))
+            .map(|d| (!d[0].is_nan()).then_some(*d))
+            .collect()
+    }
+
+    /// Where a record's centres and displacements lie in their stores.
+    fn spheres_of(&self, record: &Record) -> std::ops::Range<usize> {
+        let start = (record.centres_at - self.first_centre) as usize;
+        start..start + usize::from(record.centres_len)
     }
 
     /// Draws `batch` transitions uniformly at random (with replacement).
@@ -306,12 +331,14 @@ impl Replay {
                 .record(record.next)
                 .expect("a record's successor is newer, so still held");
             out.centres.push(self.centres_of(record));
+            out.displacements.push(self.displacements_of(record));
             out.vectors.extend(record.vector);
             out.actions.extend(record.action);
             out.rewards.push(record.reward);
             out.terminated
                 .push(if record.terminated { 1.0 } else { 0.0 });
             out.next_centres.push(self.centres_of(next));
+            out.next_displacements.push(self.displacements_of(next));
             out.next_vectors.extend(next.vector);
         }
         Ok(out)
@@ -375,11 +402,14 @@ impl Reader<'_> {
 const RECORD_BYTES: usize = 8 + 2 + 1 + 5 * 4 + 8;
 
 impl Replay {
-    /// The replay's contents as bytes (little-endian), for a checkpoint.
+    /// The replay's contents as bytes (little-endian), for a checkpoint:
+    /// the counters, records, centres and pending steps, then the centres'
+    /// displacements (NaN for none), which replays from before motion was
+    /// observed lack.
     pub fn encode(&self) -> Vec<u8> {
         let mut out = Vec::with_capacity(
-            64 + self.records.len() * RECORD_BYTES
-                + self.centres.len() * 8
+            72 + self.records.len() * RECORD_BYTES
+                + self.centres.len() * 16
                 + self.pending.len() * 24,
         );
         for v in [
@@ -412,6 +442,11 @@ impl Replay {
             out.extend(p.id.to_le_bytes());
             out.extend(p.episode.to_le_bytes());
             out.extend(p.t.to_le_bytes());
+        }
+        out.extend((self.displacements.len() as u64).to_le_bytes());
+        for d in &self.displacements {
+            out.extend(d[0].to_le_bytes());
+            out.extend(d[1].to_le_bytes());
         }
         out
     }
@@ -463,6 +498,19 @@ impl Replay {
             };
             replay.pending.insert(key, pending);
         }
+        if r.0.is_empty() {
+            // A replay from before motion was observed: every sphere new.
+            replay.displacements = vec![[f32::NAN; 2]; replay.centres.len()].into();
+        } else {
+            let n = r.count(8)?;
+            if n != replay.centres.len() {
+                return Err(corrupt("the displacements do not match the centres"));
+            }
+            replay.displacements.reserve_exact(n);
+            for _ in 0..n {
+                replay.displacements.push_back([r.f32()?, r.f32()?]);
+            }
+        }
         if !r.0.is_empty() {
             return Err(corrupt("trailing bytes"));
         }
@@ -487,5 +535,38 @@ impl Replay {
         replay.transitions = transitions;
         replay.evict();
         Ok(replay)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use tweezer_gym::{EnvConfig, RandomSteps};
+
+    #[test]
+    fn a_replay_saved_before_motion_was_observed_reads_every_sphere_as_new() {
+        let config = ReplayConfig {
+            capacity: 200,
+            ..ReplayConfig::default()
+        };
+        let mut replay = Replay::new(config.clone());
+        for record in RandomSteps::new(&EnvConfig::default(), 4, 3)
+            .unwrap()
+            .take(300)
+        {
+            replay.insert(1, &record).unwrap();
+        }
+        assert!(replay.displacements.iter().any(|d| !d[0].is_nan()));
+        let bytes = replay.encode();
+        let old = &bytes[..bytes.len() - 8 - 8 * replay.centres.len()];
+        let back = Replay::decode(config.clone(), old).unwrap();
+        assert_eq!(back.centres, replay.centres);
+        assert_eq!(back.displacements.len(), replay.centres.len());
+        assert!(back.displacements.iter().all(|d| d[0].is_nan()));
+        // A displacement section that does not match the centres is refused.
+        let mut short = old.to_vec();
+        short.extend(1u64.to_le_bytes());
+        short.extend([0; 8]);
+        assert!(Replay::decode(config, &short).is_err());
     }
 }
