@@ -14,7 +14,7 @@ use std::collections::HashMap;
 use std::sync::atomic::{AtomicBool, AtomicU32, AtomicU64, Ordering};
 use std::sync::{Mutex, MutexGuard};
 use std::time::{Duration, Instant};
-use tweezer_gym::{StepBounds, StepRecord};
+use tweezer_gym::{Planner, StepBounds, StepRecord};
 use tweezer_rpc::{Histogram, latency_buckets};
 
 /// What training reports for status.
@@ -309,6 +309,9 @@ pub struct LearnerState {
     /// The newest checkpoint written, announced to whoever waits for one.
     checkpoints: tokio::sync::watch::Sender<Option<std::path::PathBuf>>,
     timings: Timings,
+    /// Labels each arriving observation with its action, for the actor to
+    /// imitate (`td3.imitation`).
+    guide: Option<Planner>,
 }
 
 /// Latency histograms, exposed as Prometheus metrics.
@@ -357,7 +360,14 @@ impl LearnerState {
             checkpoint_wanted: AtomicBool::new(false),
             checkpoints: tokio::sync::watch::Sender::new(None),
             timings: Timings::default(),
+            guide: None,
         }
+    }
+
+    /// Labels every arriving step's observation with `planner`'s action.
+    pub fn with_guide(mut self, planner: Planner) -> Self {
+        self.guide = Some(planner);
+        self
     }
 
     /// The latency histograms.
@@ -705,6 +715,17 @@ impl LearnerState {
                 }
             }
         }
+        // Labelled before the replay is locked: the planner takes about
+        // 0.1 ms an observation.
+        let guides: Vec<Option<[f32; 2]>> = match &self.guide {
+            Some(planner) => {
+                let mut planner = planner.clone();
+                (steps.iter())
+                    .map(|s| Some(planner.action(&s.observation).components()))
+                    .collect()
+            }
+            None => vec![None; steps.len()],
+        };
         let mut finished: Vec<Episode> = Vec::new();
         let len = {
             let mut replay = self.replay();
@@ -720,9 +741,9 @@ impl LearnerState {
             known.last_sequence = Some(sequence);
             let source = known.source;
             let mut episodes = self.episodes();
-            for step in &steps {
+            for (step, guide) in steps.iter().zip(guides) {
                 replay
-                    .insert(source, step)
+                    .insert_guided(source, step, guide)
                     .expect("steps were checked against the replay's limits");
                 finished.extend(episodes.step(source, step));
             }

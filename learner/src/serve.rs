@@ -20,7 +20,7 @@ use crate::trainer::training;
 use anyhow::{Context, bail};
 use std::sync::Arc;
 use tokio::net::TcpListener;
-use tweezer_gym::StepBounds;
+use tweezer_gym::{Planner, StepBounds};
 use tweezer_process::StopSignals;
 use tweezer_rpc::{Security, ServerSecurity};
 
@@ -213,6 +213,12 @@ fn shared_state(
         .with_uniform_steps(config.uniform_steps)
         .with_snapshots(snapshots)
         .with_run_log(run_log);
+    // The planner labels what the actor imitates.
+    let shared = if config.td3.imitation > 0.0 {
+        shared.with_guide(Planner::for_config(&file.env))
+    } else {
+        shared
+    };
     Ok(match resumed {
         Some(l) => shared.with_restored(
             l.header.steps_inserted,

@@ -12,6 +12,10 @@
 //! - `reward_scale`: rewards are scaled before the TD target (the optimal
 //!   policy is unchanged);
 //! - `action_l2`: a penalty on the mean squared action in the actor's loss;
+//! - `n_step`: the critics learn from n-step returns;
+//! - `imitation`: the actor also imitates a guide's action (the planner's,
+//!   labelled on arrival), as in TD3+BC (Fujimoto and Gu, 2021), with Q
+//!   normalised by its mean magnitude so that the weight is scale-free;
 //! - the actor's loss reads Q1's encoder features detached: they do not
 //!   depend on π, so the backward pass skips Q1's encoder;
 //! - Adam's epsilon is PyTorch's 1e-8, not Burn's 1e-5.
@@ -45,10 +49,18 @@ pub struct Minibatch<I> {
     pub reward: Tensor<2>,
     /// `[batch, 1]`: 1 where the episode terminated (no bootstrap).
     pub terminated: Tensor<2>,
+    /// `[batch, 1]`: steps from the observation to the next (n-step
+    /// returns; 1 otherwise): the bootstrap is discounted by γ to this.
+    pub steps: Tensor<2>,
     /// What the networks read of the next observations.
     pub next_input: I,
     /// `[batch, 2]` next target vectors.
     pub next_vector: Tensor<2>,
+    /// `[batch, 2]` the guide's action for each observation (0 where
+    /// there is none), which the actor imitates with weight `imitation`.
+    pub guide: Tensor<2>,
+    /// `[batch, 1]`: 1 where the observation has a guide's action.
+    pub guided: Tensor<2>,
 }
 
 /// What one update computed.
@@ -145,8 +157,10 @@ impl<N: Networks> Td3<N> {
             action,
             reward,
             terminated,
+            steps,
             next_input,
             next_vector,
+            ..
         } = batch.clone();
         let on_cpu = self.on_cpu;
 
@@ -179,6 +193,7 @@ impl<N: Networks> Td3<N> {
             let y = td_target(
                 reward.valid() * c.reward_scale,
                 terminated.valid(),
+                steps.valid(),
                 q1_next,
                 q2_next,
                 c.gamma,
@@ -236,8 +251,15 @@ impl<N: Networks> Td3<N> {
 
     fn actor_step_here(&mut self, batch: Minibatch<N::Input>) -> f64 {
         let c = &self.config;
-        let Minibatch { input, vector, .. } = batch;
-        // Actor loss: −Q1(s, π(s)), plus the optional action penalty.
+        let Minibatch {
+            input,
+            vector,
+            guide,
+            guided,
+            ..
+        } = batch;
+        // Actor loss: −Q1(s, π(s)), plus the optional action penalty and
+        // imitation of the guide.
         // Q1's encoder features do not depend on π: computed detached, the
         // backward pass skips Q1's encoder (its gradients would be thrown
         // away), and they are computed beside π(s).
@@ -251,8 +273,16 @@ impl<N: Networks> Td3<N> {
             move || N::features(&q1, input).detach(),
         );
         let penalty = pi.clone().powi_scalar(2).mean() * c.action_l2;
-        let q = N::value(&self.critics.q1, features, vector, pi);
-        let loss = q.mean().neg() + penalty;
+        let q = N::value(&self.critics.q1, features, vector, pi.clone());
+        let loss = if c.imitation > 0.0 {
+            // TD3+BC: −Q / mean |Q| + w · mean over guided rows of |π − g|².
+            let q_scale = q.clone().abs().mean().detach().add_scalar(1e-6);
+            let miss = (pi - guide).powi_scalar(2).sum_dim(1) * guided;
+            let imitation = miss.mean() * c.imitation;
+            q.mean().neg().div(q_scale) + penalty + imitation
+        } else {
+            q.mean().neg() + penalty
+        };
         let actor_loss = scalar(&loss);
         let grads = GradientsParams::from_grads(loss.backward(), &self.actor);
         let optim = &mut self.actor_optim;
@@ -380,16 +410,20 @@ pub fn smoothed_target_action(action: Tensor<2>, noise: Tensor<2>, noise_clip: f
     (action + noise.clamp(-noise_clip, noise_clip)).clamp(-1.0, 1.0)
 }
 
-/// Clipped double-Q target: y = r + γ (1 − terminated) min(Q1', Q2').
+/// Clipped double-Q target over `steps` steps (n-step returns; `reward`
+/// their discounted sum): y = r + γ^steps (1 − terminated) min(Q1', Q2').
 pub fn td_target(
     reward: Tensor<2>,
     terminated: Tensor<2>,
+    steps: Tensor<2>,
     q1_next: Tensor<2>,
     q2_next: Tensor<2>,
     gamma: f64,
 ) -> Tensor<2> {
     let not_done = terminated.neg().add_scalar(1.0);
-    reward + not_done * q1_next.min_pair(q2_next) * gamma
+    // γ^steps; γ = 0 gives exp(−∞) = 0.
+    let discount = (steps * gamma.ln()).exp();
+    reward + not_done * discount * q1_next.min_pair(q2_next)
 }
 
 fn scalar<const D: usize>(t: &Tensor<D>) -> f64 {
@@ -479,6 +513,16 @@ pub struct Td3Config {
     /// OpenAI's HER baseline); keeps the tanh out of saturation while the
     /// critics are still wrong (0: the paper).
     pub action_l2: f64,
+    /// Weight of the squared distance between the actor's action and the
+    /// planner's on the same observation (0: none, the paper; 0.4: TD3+BC's
+    /// α = 2.5). With it, the learner labels every arriving observation
+    /// with the planner's action, and Q in the actor's loss is divided by
+    /// its mean magnitude.
+    pub imitation: f64,
+    /// Steps of reward summed before the critics bootstrap (1: the paper;
+    /// n-step returns beyond). Exploration noise makes the sums slightly
+    /// off-policy; short ones carry a reward back n times faster.
+    pub n_step: u32,
 }
 
 impl Default for Td3Config {
@@ -494,6 +538,8 @@ impl Default for Td3Config {
             reward_scale: 1.0,
             adam_epsilon: 1e-8,
             action_l2: 0.0,
+            imitation: 0.0,
+            n_step: 1,
         }
     }
 }
@@ -514,6 +560,7 @@ impl Td3Config {
             ("td3.policy_noise", self.policy_noise),
             ("td3.noise_clip", self.noise_clip),
             ("td3.action_l2", self.action_l2),
+            ("td3.imitation", self.imitation),
         ];
         for (field, value) in non_negative {
             if !(value.is_finite() && value >= 0.0) {
@@ -535,6 +582,9 @@ impl Td3Config {
                     format!("must be finite and > 0, got {value}"),
                 ));
             }
+        }
+        if self.n_step == 0 {
+            return Err(ConfigError::invalid("td3.n_step", "must be at least 1"));
         }
         if self.policy_delay == 0 {
             return Err(ConfigError::invalid(

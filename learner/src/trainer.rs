@@ -237,10 +237,13 @@ impl<N: Networks> Trainer<N> {
     fn update(&mut self) -> anyhow::Result<bool> {
         let _span = tracing::debug_span!("update", n = self.td3.updates() + 1).entered();
         let started = Instant::now();
-        let sampled = self
-            .shared
-            .replay()
-            .sample(self.file.learner.batch_size, &mut self.sampler)?;
+        let learner = &self.file.learner;
+        let sampled = self.shared.replay().sample_n_step(
+            learner.batch_size,
+            learner.td3.n_step,
+            learner.td3.gamma,
+            &mut self.sampler,
+        )?;
         let batch = minibatch_tensors(&sampled, self.td3.networks(), &self.device);
         let stats = self.td3.update(batch);
         if let Some(limiter) = self.shared.limiter() {

@@ -62,8 +62,10 @@ fn check(report: &LearnerBench) {
     ] {
         assert!(v > 0.0 && v.is_finite(), "{report:?}");
     }
+    // A replay of 2,000 transitions is mostly its deques' growth slack.
     assert!(
-        report.replay_bytes_per_transition > 40.0 && report.replay_bytes_per_transition < 500.0
+        report.replay_bytes_per_transition > 40.0 && report.replay_bytes_per_transition < 600.0,
+        "{report:?}"
     );
     assert!(report.ingest_transitions_per_sec > 0.0);
 }

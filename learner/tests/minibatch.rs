@@ -75,7 +75,8 @@ fn sampled_batches_become_sets_without_rendering() {
     let counts: Vec<f32> = set.counts.into_data().try_to_vec().unwrap();
     let padding = (features.len() / 6) as i64;
     for (i, centres) in sampled.centres.iter().enumerate() {
-        let scene = Scene::new(centres, &sampled.displacements[i]);
+        let v = &sampled.vectors[2 * i..2 * i + 2];
+        let scene = Scene::new(centres, &sampled.displacements[i], [v[0], v[1]]);
         let expected = networks.sets().features(scene);
         assert_eq!(counts[i], expected.len().max(1) as f32);
         for k in 0..longest {

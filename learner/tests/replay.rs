@@ -193,11 +193,14 @@ fn a_replay_survives_encoding_and_corrupt_bytes_are_refused() {
         ..ReplayConfig::default()
     };
     let mut replay = Replay::new(config.clone());
-    for record in RandomSteps::new(&EnvConfig::default(), 4, 9)
-        .unwrap()
+    for (k, record) in (RandomSteps::new(&EnvConfig::default(), 4, 9).unwrap())
         .take(800)
+        .enumerate()
     {
-        replay.insert(1, &record).unwrap();
+        // Labelled, so that the guides round-trip too (NaN, none, is
+        // unequal to itself).
+        let guide = Some([k as f32 / 800.0, 0.5]);
+        replay.insert_guided(1, &record, guide).unwrap();
     }
     let bytes = replay.encode();
     let mut back = Replay::decode(config.clone(), &bytes).unwrap();

@@ -49,11 +49,22 @@ fn td_targets_take_the_smaller_critic_and_stop_at_termination() {
     let y = td_target(
         column(&[1.0, -1.0, 1000.0], &device),
         column(&[0.0, 0.0, 1.0], &device),
+        column(&[1.0, 1.0, 1.0], &device),
         column(&[10.0, -5.0, 50.0], &device),
         column(&[12.0, -7.0, 40.0], &device),
         0.86,
     );
     close(&values(y), &[1.0 + 0.86 * 10.0, -1.0 + 0.86 * -7.0, 1000.0]);
+    // n-step: the bootstrap is discounted once per step taken.
+    let y = td_target(
+        column(&[2.0, 2.0], &device),
+        column(&[0.0, 1.0], &device),
+        column(&[3.0, 2.0], &device),
+        column(&[10.0, 10.0], &device),
+        column(&[10.0, 10.0], &device),
+        0.5,
+    );
+    close(&values(y), &[2.0 + 0.125 * 10.0, 2.0]);
 }
 
 #[test]
@@ -99,8 +110,11 @@ fn batch(n: usize, device: &Device) -> Minibatch<Tensor<4>> {
         action: pair(),
         reward: Tensor::<2>::random([n, 1], Distribution::Uniform(-1.0, 10.0), device),
         terminated: Tensor::<2>::zeros([n, 1], device),
+        steps: Tensor::<2>::ones([n, 1], device),
         next_input: image(),
         next_vector: pair(),
+        guide: Tensor::<2>::zeros([n, 2], device),
+        guided: Tensor::<2>::zeros([n, 1], device),
     }
 }
 
@@ -128,8 +142,11 @@ fn set_batch(n: usize, networks: &SetNetworks, device: &Device) -> Minibatch<Set
         action: pair(),
         reward: Tensor::<2>::random([n, 1], Distribution::Uniform(-1.0, 10.0), device),
         terminated: Tensor::<2>::zeros([n, 1], device),
+        steps: Tensor::<2>::ones([n, 1], device),
         next_input: input(),
         next_vector: pair(),
+        guide: Tensor::<2>::zeros([n, 2], device),
+        guided: Tensor::<2>::zeros([n, 1], device),
     }
 }
 
@@ -205,8 +222,11 @@ fn batch_rewarded(reward: f32, device: &Device) -> Minibatch<Tensor<4>> {
         action: pair(),
         reward: Tensor::<2>::full([4, 1], reward, device),
         terminated: Tensor::<2>::zeros([4, 1], device),
+        steps: Tensor::<2>::ones([4, 1], device),
         next_input: image(),
         next_vector: pair(),
+        guide: Tensor::<2>::zeros([4, 2], device),
+        guided: Tensor::<2>::zeros([4, 1], device),
     }
 }
 
@@ -418,6 +438,50 @@ fn the_set_networks_train_with_the_same_schedule() {
         )
         .unwrap();
     assert_eq!(act(&restored), act(&td3));
+}
+
+/// With `imitation`, the actor's loss pulls π towards the guide's action
+/// on the rows that have one, and only there.
+#[test]
+fn the_actor_imitates_the_guide_where_there_is_one() {
+    let device = Device::flex().autodiff();
+    let networks = SetNetworks::new(SetShape::new([1280, 1024]), [1280, 1024]);
+    let config = Td3Config {
+        imitation: 5.0,
+        policy_delay: 1,
+        actor_lr: 1e-3,
+        ..noiseless()
+    };
+    let start = Td3::new(config, networks.clone(), &device).unwrap();
+    let probe = set_batch(32, &networks, &device);
+    let goal = [0.6_f32, -0.4];
+    let miss = |td3: &Td3<SetNetworks>| {
+        let actions = values(SetNetworks::act(
+            &td3.policy(),
+            probe.input.clone().valid(),
+            probe.vector.clone().valid(),
+        ));
+        let squared: f32 = (actions.chunks(2))
+            .map(|a| (a[0] - goal[0]).powi(2) + (a[1] - goal[1]).powi(2))
+            .sum();
+        squared / 32.0
+    };
+    let trained = |guided: f32| {
+        let mut td3 = start.clone();
+        for _ in 0..60 {
+            let mut batch = probe.clone();
+            batch.guide =
+                Tensor::<2>::from_data(TensorData::new(goal.repeat(32), [32, 2]), &device);
+            batch.guided = Tensor::<2>::full([32, 1], guided, &device);
+            td3.update(batch);
+        }
+        miss(&td3)
+    };
+    let (before, guided, unguided) = (miss(&start), trained(1.0), trained(0.0));
+    assert!(
+        guided < 0.25 * before && guided < 0.25 * unguided,
+        "squared miss from the guide: {before} before, {guided} guided, {unguided} unguided"
+    );
 }
 
 /// Every float a module holds, parameters and BatchNorm running statistics

@@ -76,6 +76,11 @@ pub enum SphereInputs {
     /// Where it is and how it moved since the previous step (matched from
     /// consecutive centres), or that it is new to the view.
     Motion,
+    /// Motion, and the same offset and displacement again in the frame
+    /// whose x axis points at the target: the per-sphere layers then see
+    /// which spheres lie ahead on the way to the target, and how they cross
+    /// it, before anything is pooled.
+    Goal,
 }
 
 impl SphereInputs {
@@ -84,12 +89,13 @@ impl SphereInputs {
         match self {
             Self::Positions => "positions",
             Self::Motion => "motion",
+            Self::Goal => "goal",
         }
     }
 
     /// The inputs called `name`.
     pub fn from_name(name: &str) -> Option<Self> {
-        [Self::Positions, Self::Motion]
+        [Self::Positions, Self::Motion, Self::Goal]
             .into_iter()
             .find(|i| i.name() == name)
     }
@@ -99,6 +105,7 @@ impl SphereInputs {
         match self {
             Self::Positions => 3,
             Self::Motion => 6,
+            Self::Goal => 10,
         }
     }
 }

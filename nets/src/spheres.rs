@@ -2,8 +2,9 @@
 //! each free sphere's position relative to the trap (the FOV centre),
 //! scaled by half the width of the field the network was trained on, and
 //! its distance; with [`SphereInputs::Motion`], also its displacement since
-//! the previous step and whether it is new to the view; packed with where
-//! each lands in its set. No rendering: the replay's centres go in as they
+//! the previous step and whether it is new to the view; with
+//! [`SphereInputs::Goal`], also the offset and displacement in the frame
+//! that points at the target; packed with where each lands in its set. No rendering: the replay's centres go in as they
 //! are.
 
 use crate::architecture::{SetShape, SphereInputs};
@@ -23,25 +24,47 @@ pub struct Scene<'a> {
     /// Their displacements since the previous step (`None`: new to the
     /// view); empty where none are known.
     pub displacements: &'a [Option<[f32; 2]>],
+    /// The target vector.
+    pub vector: [f32; 2],
 }
 
 impl<'a> Scene<'a> {
     /// The scene of an observation.
     pub fn of(observation: &'a Observation) -> Self {
-        Self::new(&observation.centres, &observation.displacements)
+        Self::new(
+            &observation.centres,
+            &observation.displacements,
+            observation.vector,
+        )
     }
 
-    /// Centres with their displacements.
-    pub fn new(centres: &'a [[f32; 2]], displacements: &'a [Option<[f32; 2]>]) -> Self {
+    /// Centres with their displacements, and the target vector.
+    pub fn new(
+        centres: &'a [[f32; 2]],
+        displacements: &'a [Option<[f32; 2]>],
+        vector: [f32; 2],
+    ) -> Self {
         Self {
             centres,
             displacements,
+            vector,
         }
     }
 
-    /// Centres whose motion is unknown.
+    /// Centres whose motion is unknown, the target straight to the right.
     pub fn without_motion(centres: &'a [[f32; 2]]) -> Self {
-        Self::new(centres, &[])
+        Self::new(centres, &[], [1.0, 0.0])
+    }
+
+    /// The unit vector towards the target; x where the trap is on it.
+    fn heading(&self) -> [f32; 2] {
+        let [x, y] = self.vector;
+        let norm = x.hypot(y);
+        if norm > 1e-6 && norm.is_finite() {
+            [x / norm, y / norm]
+        } else {
+            [1.0, 0.0]
+        }
     }
 
     fn displacement(&self, index: usize) -> Option<[f32; 2]> {
@@ -116,8 +139,10 @@ impl SphereSets {
     /// `max_spheres`, one row of [`SphereInputs::features`] values each:
     /// position and distance, then (with motion) the displacement over
     /// [`MOTION_SCALE_PX`] and 1 for a sphere new to the view (whose
-    /// displacement reads 0).
+    /// displacement reads 0), then (with goal) the position and the
+    /// displacement along and across the heading to the target.
     pub fn features(&self, scene: Scene) -> Vec<Vec<f32>> {
+        let [ux, uy] = scene.heading();
         let mut rows: Vec<Vec<f32>> = scene
             .centres
             .iter()
@@ -127,13 +152,27 @@ impl SphereSets {
                 let dy = (c[1] - self.trap_px[1]) / self.scale_px;
                 let mut row = Vec::with_capacity(self.inputs.features());
                 row.extend([dx, dy, dx.hypot(dy)]);
-                if self.inputs == SphereInputs::Motion {
-                    match scene.displacement(k) {
-                        Some([mx, my]) => {
-                            row.extend([mx / MOTION_SCALE_PX, my / MOTION_SCALE_PX, 0.0]);
-                        }
-                        None => row.extend([0.0, 0.0, 1.0]),
+                if self.inputs == SphereInputs::Positions {
+                    return row;
+                }
+                let (mx, my) = match scene.displacement(k) {
+                    Some([mx, my]) => {
+                        let m = (mx / MOTION_SCALE_PX, my / MOTION_SCALE_PX);
+                        row.extend([m.0, m.1, 0.0]);
+                        m
                     }
+                    None => {
+                        row.extend([0.0, 0.0, 1.0]);
+                        (0.0, 0.0)
+                    }
+                };
+                if self.inputs == SphereInputs::Goal {
+                    row.extend([
+                        dx * ux + dy * uy,
+                        dy * ux - dx * uy,
+                        mx * ux + my * uy,
+                        my * ux - mx * uy,
+                    ]);
                 }
                 row
             })

@@ -145,7 +145,7 @@ fn motion_reads_each_displacement_and_flags_newcomers() {
     };
     let sets = SphereSets::new(&shape, FOV);
     let centres = [[170.0, 128.0], [160.0, 148.0]];
-    let features = sets.features(Scene::new(&centres, &[Some([1.0, -2.0]), None]));
+    let features = sets.features(Scene::new(&centres, &[Some([1.0, -2.0]), None], [1.0, 0.0]));
     let step = MOTION_SCALE_PX;
     assert_close(
         &features[0],
@@ -167,4 +167,51 @@ fn motion_reads_each_displacement_and_flags_newcomers() {
     // Motion unknown: every sphere is new.
     let unknown = sets.features(Scene::without_motion(&centres));
     assert!(unknown.iter().all(|row| row[3..] == [0.0, 0.0, 1.0]));
+}
+
+#[test]
+fn goal_inputs_turn_offset_and_motion_towards_the_target() {
+    let shape = SetShape {
+        inputs: SphereInputs::Goal,
+        ..SetShape::new(FOV)
+    };
+    let sets = SphereSets::new(&shape, FOV);
+    let centres = [[170.0, 128.0], [160.0, 148.0]];
+    let moves = [Some([1.0, -2.0]), None];
+    // The target straight down (+y): ahead is +y, and across is −x (the
+    // frame's y axis, x turned a quarter to the left).
+    let features = sets.features(Scene::new(&centres, &moves, [0.0, 0.5]));
+    let (step, unit) = (MOTION_SCALE_PX, 160.0);
+    assert_close(
+        &features[0],
+        &[
+            10.0 / unit,
+            0.0,
+            10.0 / unit,
+            1.0 / step,
+            -2.0 / step,
+            0.0,
+            0.0,
+            -10.0 / unit,
+            -2.0 / step,
+            -1.0 / step,
+        ],
+        "tracked",
+    );
+    assert_close(
+        &features[1][6..],
+        &[20.0 / unit, 0.0, 0.0, 0.0],
+        "new: ahead, not moving",
+    );
+    // With the trap on the target the frame is the field's own.
+    let on_target = sets.features(Scene::new(&centres, &moves, [0.0, 0.0]));
+    assert_close(
+        &on_target[0][6..],
+        &on_target[0][..2]
+            .iter()
+            .chain(&on_target[0][3..5])
+            .copied()
+            .collect::<Vec<_>>(),
+        "on target",
+    );
 }

@@ -54,7 +54,7 @@ def paper_actor(t, images, vectors):
 
 
 def set_actor(t, pooling, sets, vectors):
-    """sets: one [n_i, 3] (positions) or [n_i, 6] (motion) array of sphere
+    """sets: one [n_i, 3] (positions), [n_i, 6] (motion) or [n_i, 10] (goal) array of sphere
     features per observation;
     vectors: [batch, 2] → actions [batch, 2]."""
     pooled = []

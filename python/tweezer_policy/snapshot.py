@@ -19,7 +19,7 @@ FIELDS = {
 POOLINGS = ("max_mean", "max", "mean")
 # What a set network reads of each sphere; snapshots without the field read
 # positions.
-INPUTS = ("positions", "motion")
+INPUTS = ("positions", "motion", "goal")
 MAX_SIZE = 1 << 16
 
 

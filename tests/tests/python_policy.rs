@@ -1,9 +1,9 @@
 //! The Python policy package (`python/`, installed from its own
 //! `pyproject.toml` into a fresh venv) loads snapshots of both
 //! architectures trained by a short real run (a learner and an actor over
-//! gRPC; the set network reads motion), and its actions for unseen
-//! observations match the Rust policy's (`actor act`) to 1e-4; it refuses a
-//! snapshot whose weights were altered.
+//! gRPC; the set network reads motion, also in the goal's frame), and its
+//! actions for unseen observations match the Rust policy's (`actor act`) to
+//! 1e-4; it refuses a snapshot whose weights were altered.
 
 use std::path::{Path, PathBuf};
 use std::process::Command;
@@ -110,7 +110,7 @@ fn python_loads_trained_snapshots_of_both_architectures_and_acts_as_rust_does() 
         ("paper", ""),
         (
             "set",
-            "[learner.network]\nkind = \"set\"\nsphere_hidden = 32\ninputs = \"motion\"\n",
+            "[learner.network]\nkind = \"set\"\nsphere_hidden = 32\ninputs = \"goal\"\n",
         ),
     ] {
         let work = dir.path().join(name);
@@ -177,7 +177,7 @@ fn python_loads_trained_snapshots_of_both_architectures_and_acts_as_rust_does() 
             );
             assert_eq!(report["architecture"], architecture);
             if name == "set" {
-                assert_eq!(report["inputs"], "motion", "{report}");
+                assert_eq!(report["inputs"], "goal", "{report}");
             }
             unsaturated += report["unsaturated"].as_u64().unwrap();
         }

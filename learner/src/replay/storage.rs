@@ -1,5 +1,6 @@
 //! Compact FIFO storage of step records and their sphere centres, each with
-//! its displacement since the previous step.
+//! its displacement since the previous step, and of a guide's action for
+//! each step's observation where one was labelled.
 
 use serde::{Deserialize, Serialize};
 use std::collections::{HashMap, VecDeque};
@@ -61,6 +62,8 @@ struct Record {
     vector: [f32; 2],
     action: [f32; 2],
     reward: f32,
+    /// The guide's action for this observation; NaN where none was given.
+    guide: [f32; 2],
     /// Id of the record with the next observation, or `NONE`.
     next: u64,
 }
@@ -85,16 +88,23 @@ pub struct SampledTransitions {
     pub vectors: Vec<f32>,
     /// Actions, `[batch, 2]`.
     pub actions: Vec<f32>,
-    /// Rewards, `[batch]`.
+    /// Rewards, `[batch]`: with n-step returns, the discounted sum over
+    /// the steps taken.
     pub rewards: Vec<f32>,
-    /// 1 where the step terminated the episode (no bootstrap), else 0.
+    /// 1 where a step taken terminated the episode (no bootstrap), else 0.
     pub terminated: Vec<f32>,
+    /// Steps taken from each observation to its next, `[batch]`: 1, or up
+    /// to n with n-step returns (fewer where the episode ended first).
+    pub steps: Vec<f32>,
     /// Centres of each next observation.
     pub next_centres: Vec<Vec<[f32; 2]>>,
     /// Their displacements.
     pub next_displacements: Vec<Vec<Option<[f32; 2]>>>,
     /// Next target vectors, `[batch, 2]`.
     pub next_vectors: Vec<f32>,
+    /// The guide's action for each observation, `[batch, 2]`; NaN where
+    /// none was given.
+    pub guides: Vec<f32>,
 }
 
 /// The replay table.
@@ -180,7 +190,12 @@ impl Replay {
             .and_then(|i| self.records.get_mut(i as usize))
     }
 
-    fn push(&mut self, observation: &Observation, step: Option<(&StepRecord, bool)>) -> u64 {
+    fn push(
+        &mut self,
+        observation: &Observation,
+        step: Option<(&StepRecord, bool)>,
+        guide: Option<[f32; 2]>,
+    ) -> u64 {
         let id = self.first_id + self.records.len() as u64;
         let centres_at = self.first_centre + self.centres.len() as u64;
         self.centres.extend(observation.centres.iter().copied());
@@ -200,6 +215,7 @@ impl Replay {
             vector: observation.vector,
             action,
             reward,
+            guide: guide.unwrap_or([f32::NAN; 2]),
             next: NONE,
         });
         id
@@ -225,9 +241,19 @@ impl Replay {
     /// Stores one step from `source`, linking it to that environment's
     /// previous step, and removes the oldest records beyond capacity.
     pub fn insert(&mut self, source: Source, step: &StepRecord) -> Result<(), ReplayError> {
+        self.insert_guided(source, step, None)
+    }
+
+    /// [`Self::insert`], with the guide's action for the step's observation.
+    pub fn insert_guided(
+        &mut self,
+        source: Source,
+        step: &StepRecord,
+        guide: Option<[f32; 2]>,
+    ) -> Result<(), ReplayError> {
         Self::admits(step)?;
         let terminated = step.terminated();
-        let id = self.push(&step.observation, Some((step, terminated)));
+        let id = self.push(&step.observation, Some((step, terminated)), guide);
         let key = (source, step.env);
         if let Some(previous) = self.pending.remove(&key)
             && previous.episode == step.episode
@@ -247,7 +273,7 @@ impl Replay {
                 );
             }
             Some(end) => {
-                let last = self.push(&end.final_observation, None);
+                let last = self.push(&end.final_observation, None, None);
                 self.link(id, last);
             }
         }
@@ -321,25 +347,50 @@ impl Replay {
         batch: usize,
         rng: &mut SplitMix64,
     ) -> Result<SampledTransitions, ReplayError> {
+        self.sample_n_step(batch, 1, 1.0, rng)
+    }
+
+    /// Draws `batch` transitions uniformly at random (with replacement),
+    /// each followed up to `n` steps along its episode: the rewards summed
+    /// with discount `gamma`, the next observation the last reached. A
+    /// step that ends the episode, or whose successor has not arrived,
+    /// ends the walk early.
+    pub fn sample_n_step(
+        &self,
+        batch: usize,
+        n: u32,
+        gamma: f64,
+        rng: &mut SplitMix64,
+    ) -> Result<SampledTransitions, ReplayError> {
         if self.transitions == 0 {
             return Err(ReplayError::Empty);
         }
+        let successor = |r: &Record| {
+            self.record(r.next)
+                .expect("a record's successor is newer, so still held")
+        };
         let mut out = SampledTransitions::default();
         for _ in 0..batch {
             let record = self.draw(rng);
-            let next = self
-                .record(record.next)
-                .expect("a record's successor is newer, so still held");
+            let (mut last, mut next) = (record, successor(record));
+            let (mut reward, mut steps, mut discount) = (f64::from(record.reward), 1, 1.0);
+            while steps < n && !last.terminated && next.step && next.next != NONE {
+                discount *= gamma;
+                reward += discount * f64::from(next.reward);
+                steps += 1;
+                (last, next) = (next, successor(next));
+            }
             out.centres.push(self.centres_of(record));
             out.displacements.push(self.displacements_of(record));
             out.vectors.extend(record.vector);
             out.actions.extend(record.action);
-            out.rewards.push(record.reward);
-            out.terminated
-                .push(if record.terminated { 1.0 } else { 0.0 });
+            out.rewards.push(reward as f32);
+            out.terminated.push(if last.terminated { 1.0 } else { 0.0 });
+            out.steps.push(steps as f32);
             out.next_centres.push(self.centres_of(next));
             out.next_displacements.push(self.displacements_of(next));
             out.next_vectors.extend(next.vector);
+            out.guides.extend(record.guide);
         }
         Ok(out)
     }
@@ -405,7 +456,8 @@ impl Replay {
     /// The replay's contents as bytes (little-endian), for a checkpoint:
     /// the counters, records, centres and pending steps, then the centres'
     /// displacements (NaN for none), which replays from before motion was
-    /// observed lack.
+    /// observed lack, then the records' guide actions (NaN for none), which
+    /// replays from before guides lack.
     pub fn encode(&self) -> Vec<u8> {
         let mut out = Vec::with_capacity(
             72 + self.records.len() * RECORD_BYTES
@@ -448,6 +500,11 @@ impl Replay {
             out.extend(d[0].to_le_bytes());
             out.extend(d[1].to_le_bytes());
         }
+        out.extend((self.records.len() as u64).to_le_bytes());
+        for r in &self.records {
+            out.extend(r.guide[0].to_le_bytes());
+            out.extend(r.guide[1].to_le_bytes());
+        }
         out
     }
 
@@ -480,6 +537,7 @@ impl Replay {
                 vector: [f[0], f[1]],
                 action: [f[2], f[3]],
                 reward: f[4],
+                guide: [f32::NAN; 2],
                 next: r.u64()?,
             });
         }
@@ -509,6 +567,16 @@ impl Replay {
             replay.displacements.reserve_exact(n);
             for _ in 0..n {
                 replay.displacements.push_back([r.f32()?, r.f32()?]);
+            }
+        }
+        // Replays from before guides have none.
+        if !r.0.is_empty() {
+            let n = r.count(8)?;
+            if n != replay.records.len() {
+                return Err(corrupt("the guides do not match the records"));
+            }
+            for record in &mut replay.records {
+                record.guide = [r.f32()?, r.f32()?];
             }
         }
         if !r.0.is_empty() {
@@ -543,27 +611,114 @@ mod tests {
     use super::*;
     use tweezer_gym::{EnvConfig, RandomSteps};
 
+    fn filled(config: &ReplayConfig, guided: bool) -> Replay {
+        let mut replay = Replay::new(config.clone());
+        for (k, record) in RandomSteps::new(&EnvConfig::default(), 4, 3)
+            .unwrap()
+            .take(300)
+            .enumerate()
+        {
+            let guide = guided.then_some([k as f32 / 300.0, -0.5]);
+            replay.insert_guided(1, &record, guide).unwrap();
+        }
+        replay
+    }
+
+    /// Bytes of the guide section [`Replay::encode`] writes last.
+    fn guide_section(replay: &Replay) -> usize {
+        8 + 8 * replay.records.len()
+    }
+
     #[test]
     fn a_replay_saved_before_motion_was_observed_reads_every_sphere_as_new() {
         let config = ReplayConfig {
             capacity: 200,
             ..ReplayConfig::default()
         };
-        let mut replay = Replay::new(config.clone());
-        for record in RandomSteps::new(&EnvConfig::default(), 4, 3)
-            .unwrap()
-            .take(300)
-        {
-            replay.insert(1, &record).unwrap();
-        }
+        let replay = filled(&config, false);
         assert!(replay.displacements.iter().any(|d| !d[0].is_nan()));
         let bytes = replay.encode();
-        let old = &bytes[..bytes.len() - 8 - 8 * replay.centres.len()];
+        let old = &bytes[..bytes.len() - guide_section(&replay) - 8 - 8 * replay.centres.len()];
         let back = Replay::decode(config.clone(), old).unwrap();
         assert_eq!(back.centres, replay.centres);
         assert_eq!(back.displacements.len(), replay.centres.len());
         assert!(back.displacements.iter().all(|d| d[0].is_nan()));
         // A displacement section that does not match the centres is refused.
+        let mut short = old.to_vec();
+        short.extend(1u64.to_le_bytes());
+        short.extend([0; 8]);
+        assert!(Replay::decode(config, &short).is_err());
+    }
+
+    #[test]
+    fn n_step_draws_sum_rewards_along_the_episode_and_stop_at_its_end() {
+        let config = ReplayConfig {
+            capacity: 1000,
+            ..ReplayConfig::default()
+        };
+        let mut replay = Replay::new(config);
+        let env = EnvConfig {
+            time_limit: 10,
+            ..EnvConfig::default()
+        };
+        let records: Vec<StepRecord> = RandomSteps::new(&env, 1, 5).unwrap().take(400).collect();
+        for record in &records {
+            replay.insert(1, record).unwrap();
+        }
+        let sampled = replay
+            .sample_n_step(300, 3, 0.5, &mut SplitMix64::new(3))
+            .unwrap();
+        let mut ended_early = 0;
+        for i in 0..300 {
+            let a = &sampled.actions[2 * i..2 * i + 2];
+            let k = (records.iter())
+                .position(|r| r.action.components() == [a[0], a[1]])
+                .unwrap();
+            if k + 3 >= records.len() {
+                continue; // the walk may meet a step still awaiting its successor
+            }
+            let (mut reward, mut steps, mut discount, mut terminated) = (0.0, 0, 1.0, false);
+            for r in &records[k..] {
+                reward += discount * f64::from(r.reward);
+                (steps, discount, terminated) = (steps + 1, discount * 0.5, r.terminated());
+                if steps == 3 || r.end.is_some() {
+                    break;
+                }
+            }
+            assert_eq!(sampled.steps[i], steps as f32, "draw {i}");
+            assert!(
+                (f64::from(sampled.rewards[i]) - reward).abs() < 1e-3,
+                "draw {i}"
+            );
+            assert_eq!(sampled.terminated[i], f32::from(u8::from(terminated)));
+            ended_early += usize::from(steps < 3);
+        }
+        assert!(ended_early > 0, "some draws meet an episode's end");
+    }
+
+    #[test]
+    fn guides_are_sampled_with_their_step_and_survive_a_checkpoint() {
+        let config = ReplayConfig {
+            capacity: 200,
+            ..ReplayConfig::default()
+        };
+        let replay = filled(&config, true);
+        let sampled = replay.sample(64, &mut SplitMix64::new(7)).unwrap();
+        assert_eq!(sampled.guides.len(), 128);
+        assert!(sampled.guides.chunks(2).all(|g| g[1] == -0.5 && g[0] > 0.0));
+        let bytes = replay.encode();
+        let back = Replay::decode(config.clone(), &bytes).unwrap();
+        let guides = |r: &Replay| {
+            (r.records.iter())
+                .map(|r| r.guide.map(f32::to_bits))
+                .collect::<Vec<_>>()
+        };
+        assert_eq!(guides(&back), guides(&replay));
+        // A replay saved before guides has none; a section that does not
+        // match the records is refused.
+        let old = &bytes[..bytes.len() - guide_section(&replay)];
+        let back = Replay::decode(config.clone(), old).unwrap();
+        assert!(back.records.iter().all(|r| r.guide[0].is_nan()));
         let mut short = old.to_vec();
         short.extend(1u64.to_le_bytes());
         short.extend([0; 8]);
