@@ -12,13 +12,24 @@
 //! controller to identify itself; everything before that identification is
 //! stale and discarded. A position outside any Z8 actuator's travel is
 //! taken as garbled, never fed to the soft-limit check.
+//!
+//! Nor does the driver believe a well-formed reading blindly. Frames not
+//! addressed from the controller to the host are discarded. Every position
+//! is judged against the last: a stage that moved further than the speeds
+//! commanded since allow (a runaway motor, a counter that jumped, a
+//! controller that reset), or that stood still over several readings while
+//! commanded to move (a frozen encoder, a stalled motor), is stopped and
+//! never moved again by this driver. So is one whose controller reports a
+//! limit switch, a motion error, a current limit or a disabled channel in
+//! any status message it sends.
 
 use crate::apt::{
-    AptError, Channel, Command, Direction, FrameReader, HardwareInfo, Reply, StopMode,
-    VelocityParams, Z8Units,
+    AptError, Channel, Command, DEVICE, DcStatus, Direction, FrameReader, HOST, HardwareInfo,
+    Reply, StopMode, VelocityParams, Z8Units,
 };
 use std::io::{ErrorKind, Read, Write};
 use std::ops::RangeInclusive;
+use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 /// The KDC101's one channel.
@@ -30,6 +41,33 @@ const QUIET: Duration = Duration::from_millis(50);
 const RESYNC_ATTEMPTS: usize = 3;
 /// Positions a Z8-series actuator can report, mm (the Z825 travels 25 mm).
 const PLAUSIBLE_MM: RangeInclusive<f64> = -1.0..=26.0;
+/// How much faster than commanded a stage may seem to move between two
+/// readings (velocity-loop overshoot), as a fraction.
+const SPEED_TOLERANCE: f64 = 0.25;
+/// Distance two readings may differ beyond what the commanded speeds
+/// explain, mm: a few µm of quantisation and profile rounding, well under
+/// the 0.5 mm a soft limit usually keeps from the end of travel.
+const POSITION_SLACK_MM: f64 = 0.02;
+/// Readings in a row that find a stage commanded to move where it was
+/// before the driver takes its encoder as frozen (or its motor stalled).
+const STILL_READINGS: u32 = 2;
+/// Travel, mm, a stage commanded to move must make at the least between
+/// two readings (accelerating from rest) for standing still to count:
+/// about 10 counts, under the agent's micrometre steps.
+const STILL_MIN_TRAVEL_MM: f64 = 0.0003;
+/// The KDC101's status bits that end the driver's trust, and what each
+/// means (APT protocol, MOT_GET_DCSTATUSUPDATE).
+const FAULT_BITS: [(u32, &str); 4] = [
+    (0x0000_0001, "its forward hardware limit switch is active"),
+    (0x0000_0002, "its reverse hardware limit switch is active"),
+    (
+        0x0000_4000,
+        "it reports a motion error (position error too large)",
+    ),
+    (0x0100_0000, "its motor reached the current limit"),
+];
+/// Status bit: the channel is enabled.
+const ENABLED_BIT: u32 = 0x8000_0000;
 
 /// What the stage may do.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -46,6 +84,29 @@ pub struct AxisLimits {
     /// deadline margin), s: motion is allowed only while the stage cannot
     /// pass a soft limit within it.
     pub command_interval_s: f64,
+}
+
+/// Where the driver reads the time it judges readings by: the wall clock,
+/// or a test's simulated one.
+#[derive(Clone)]
+struct Clock(Arc<dyn Fn() -> Instant + Send + Sync>);
+
+impl Clock {
+    fn now(&self) -> Instant {
+        (self.0)()
+    }
+}
+
+impl Default for Clock {
+    fn default() -> Self {
+        Self(Arc::new(Instant::now))
+    }
+}
+
+impl std::fmt::Debug for Clock {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str("Clock")
+    }
 }
 
 /// A stage axis on a serial port (or anything that reads and writes APT
@@ -71,6 +132,44 @@ pub struct Axis<P: Read + Write> {
     in_step: bool,
     /// The controller's serial number, once identified.
     serial: Option<u32>,
+    /// Whether connect has finished: statuses before the channel is
+    /// enabled say nothing about a fault.
+    connected: bool,
+    /// The last position read, to judge the next by.
+    last_reading: Option<Reading>,
+    /// The fastest the stage may have been commanded to move since that
+    /// reading, mm/s.
+    fastest_since_read: f64,
+    /// The slowest it has been commanded to move since then, mm/s (0 once
+    /// stopped or reversed).
+    slowest_since_read: f64,
+    /// When a stop was sent with no move after it.
+    halted_at: Option<Instant>,
+    /// The fastest the motor could be moving at `bound_at`, mm/s: a speed
+    /// commanded earlier is braked off at the profile's acceleration, not
+    /// at once.
+    bound_mm_s: f64,
+    bound_at: Instant,
+    /// The direction of the move in force, if any.
+    moving: Option<Direction>,
+    /// From when the motor can be moving that way: a reversal or a start
+    /// first brakes whatever motion went before.
+    settled_at: Instant,
+    /// Readings in a row that found the stage where it was, though
+    /// commanded to move.
+    still_readings: u32,
+    /// Why the driver stopped trusting the stage, once it has.
+    untrusted: Option<String>,
+    clock: Clock,
+}
+
+/// A position read, and when it was asked for and answered: the
+/// controller sampled it in between.
+#[derive(Clone, Copy, Debug)]
+struct Reading {
+    mm: f64,
+    asked: Instant,
+    answered: Instant,
 }
 
 /// What a velocity command did.
@@ -102,6 +201,18 @@ impl<P: Read + Write> Axis<P> {
             carriage: None,
             in_step: false,
             serial: None,
+            connected: false,
+            last_reading: None,
+            fastest_since_read: 0.0,
+            slowest_since_read: 0.0,
+            halted_at: None,
+            bound_mm_s: 0.0,
+            bound_at: Instant::now(),
+            moving: None,
+            settled_at: Instant::now(),
+            still_readings: 0,
+            untrusted: None,
+            clock: Clock::default(),
         };
         let info = stage.resync()?;
         // Z8 units and the one channel are the KDC101's: another model
@@ -120,6 +231,7 @@ impl<P: Read + Write> Axis<P> {
                 )));
             }
         }
+        stage.connected = true;
         Ok((stage, info))
     }
 
@@ -156,14 +268,17 @@ impl<P: Read + Write> Axis<P> {
 
     /// The position counter (the motor's position), mm.
     pub fn position_mm(&mut self) -> Result<f64, AptError> {
+        self.trusted()?;
         if !self.in_step {
             self.resync()?;
         }
+        let asked = self.clock.now();
         self.send(Command::RequestPosition(CHANNEL))?;
         let Reply::Position(_, counts) = self.await_reply(|r| matches!(r, Reply::Position(..)))?
         else {
             unreachable!("await_reply returns what was asked for")
         };
+        let answered = self.clock.now();
         let mm = self.units.mm(counts);
         if !PLAUSIBLE_MM.contains(&mm) {
             self.lost_step();
@@ -171,7 +286,115 @@ impl<P: Read + Write> Axis<P> {
                 "a position of {mm:.3} mm, outside any Z8 actuator's travel: a garbled reply"
             )));
         }
+        self.judge(Reading {
+            mm,
+            asked,
+            answered,
+        })?;
         Ok(mm)
+    }
+
+    /// Judges a reading by the last: the stage cannot have moved further
+    /// than the fastest speed commanded since allows (until a stop, then
+    /// its braking distance), and a stage commanded to move throughout
+    /// must have moved.
+    fn judge(&mut self, reading: Reading) -> Result<(), AptError> {
+        if let Some(last) = self.last_reading {
+            let fastest = self.fastest_since_read;
+            // The controller sampled each reading between its request
+            // and its reply: this bounds the time between the two.
+            let end = self
+                .halted_at
+                .map_or(reading.answered, |t| t.max(last.asked));
+            let window = end.saturating_duration_since(last.asked).as_secs_f64();
+            let braking = if self.halted_at.is_some() {
+                fastest * fastest / (2.0 * self.limits.acceleration_mm_s2)
+            } else {
+                0.0
+            };
+            let allowed =
+                (fastest * window + braking) * (1.0 + SPEED_TOLERANCE) + POSITION_SLACK_MM;
+            let moved = reading.mm - last.mm;
+            if moved.abs() > allowed {
+                return Err(self.distrust(format!(
+                    "its position went from {:.4} mm to {:.4} mm within {:.0} ms: {:.4} mm, \
+                     where the {fastest:.3} mm/s commanded allow at most {allowed:.4} mm \
+                     (a runaway motor, a counter that jumped, or a controller that reset)",
+                    last.mm,
+                    reading.mm,
+                    1000.0 * reading.answered.duration_since(last.asked).as_secs_f64(),
+                    moved.abs(),
+                )));
+            }
+            // The least it moved, had it accelerated from rest once it
+            // could be moving this way (after the last reading, and after
+            // any reversal), at the slowest speed commanded since.
+            let slowest = self.slowest_since_read;
+            let least = if slowest > 0.0 {
+                let from = last.answered.max(self.settled_at);
+                let t = reading.asked.saturating_duration_since(from).as_secs_f64();
+                let a = self.limits.acceleration_mm_s2;
+                let reach = slowest / a;
+                if t < reach {
+                    0.5 * a * t * t
+                } else {
+                    slowest * (t - 0.5 * reach)
+                }
+            } else {
+                0.0
+            };
+            if least >= STILL_MIN_TRAVEL_MM {
+                if moved.abs() < 0.1 * least {
+                    self.still_readings += 1;
+                } else {
+                    self.still_readings = 0;
+                }
+            } else if moved.abs() >= 0.1 * STILL_MIN_TRAVEL_MM {
+                // Too soon after the last to judge, but it moved.
+                self.still_readings = 0;
+            }
+            if self.still_readings >= STILL_READINGS {
+                return Err(self.distrust(format!(
+                    "commanded to move at {slowest:.3} mm/s or more, its position read \
+                     {:.4} mm for {STILL_READINGS} readings in a row (a frozen encoder or a \
+                     stalled motor)",
+                    reading.mm
+                )));
+            }
+        }
+        self.last_reading = Some(reading);
+        self.fastest_since_read = self.speed_bound(reading.asked);
+        self.slowest_since_read = if self.moving.is_some() && self.halted_at.is_none() {
+            self.last_speed
+        } else {
+            0.0
+        };
+        Ok(())
+    }
+
+    /// The fastest the motor can be moving at `now`, mm/s: the last speed
+    /// commanded, or a faster one before it less what braking at the
+    /// profile's acceleration has taken off since.
+    fn speed_bound(&self, now: Instant) -> f64 {
+        let since = now.saturating_duration_since(self.bound_at).as_secs_f64();
+        let braked = self.bound_mm_s - self.limits.acceleration_mm_s2 * since;
+        braked.max(self.last_speed)
+    }
+
+    /// Stops the motor at once and stops trusting the stage, for `why`;
+    /// the error to return.
+    fn distrust(&mut self, why: String) -> AptError {
+        self.lost_step();
+        self.untrusted.get_or_insert(why.clone());
+        AptError::Untrusted(why)
+    }
+
+    /// The error that ended the driver's trust, if one has.
+    fn trusted(&self) -> Result<(), AptError> {
+        match &self.untrusted {
+            Some(why) => Err(AptError::Untrusted(why.clone())),
+            None => Ok(()),
+        }
     }
 
     /// Moves at `mm_per_s` (sign = direction) until the next command,
@@ -179,6 +402,10 @@ impl<P: Read + Write> Axis<P> {
     /// limit the stage could pass before the next command is refused with
     /// a profiled stop. A non-finite speed stops the stage.
     pub fn set_velocity(&mut self, mm_per_s: f64) -> Result<Commanded, AptError> {
+        if let Err(e) = self.trusted() {
+            let _ = self.stop(StopMode::Immediate);
+            return Err(e);
+        }
         let speed = if mm_per_s.is_finite() {
             mm_per_s.clamp(-self.limits.max_speed_mm_s, self.limits.max_speed_mm_s)
         } else {
@@ -206,9 +433,13 @@ impl<P: Read + Write> Axis<P> {
         } else {
             speed
         };
-        // The stage may still be at the last speed: bound the travel by it.
-        let fastest = speed.abs().max(self.last_speed);
-        let reach = fastest * self.limits.command_interval_s
+        // The stage may still be moving faster: bound the travel by that,
+        // and by the overshoot a reading is allowed before it is a fault.
+        let fastest = speed.abs().max(self.speed_bound(self.clock.now())) * (1.0 + SPEED_TOLERANCE);
+        // A frozen encoder hides motion for up to STILL_READINGS readings
+        // before it is found: the margin covers that travel too.
+        let intervals = 1.0 + f64::from(STILL_READINGS);
+        let reach = fastest * self.limits.command_interval_s * intervals
             + fastest * fastest / (2.0 * self.limits.acceleration_mm_s2);
         let blocked = if speed > 0.0 {
             position + reach >= self.limits.max_mm
@@ -230,13 +461,36 @@ impl<P: Read + Write> Axis<P> {
             self.speed_set = Some(units);
         }
         self.send(Command::MoveVelocity(CHANNEL, direction))?;
-        self.last_speed = speed.abs();
+        let speed_abs = speed.abs();
+        if self.halted_at.is_some() || self.moving != Some(direction) {
+            // It may still be moving the other way at the last speed.
+            let reversal = self.last_speed / self.limits.acceleration_mm_s2;
+            self.settled_at = self.clock.now() + Duration::from_secs_f64(reversal);
+        }
+        let now = self.clock.now();
+        self.bound_mm_s = self.speed_bound(now).max(speed_abs);
+        self.bound_at = now;
+        self.fastest_since_read = self.fastest_since_read.max(speed_abs);
+        self.slowest_since_read = self.slowest_since_read.min(speed_abs);
+        self.halted_at = None;
+        self.moving = Some(direction);
+        self.last_speed = speed_abs;
         Ok(Commanded::Moving(speed))
     }
 
-    /// Stops the motor.
+    /// Stops the motor. A stop is never refused, whatever the driver
+    /// thinks of the stage.
     pub fn stop(&mut self, mode: StopMode) -> Result<(), AptError> {
+        self.halted();
         self.send(Command::Stop(CHANNEL, mode))
+    }
+
+    /// Notes that a stop is being sent: the stage slows from here on.
+    fn halted(&mut self) {
+        let now = self.clock.now();
+        self.halted_at.get_or_insert(now);
+        self.moving = None;
+        self.slowest_since_read = 0.0;
     }
 
     fn send(&mut self, command: Command) -> Result<(), AptError> {
@@ -263,6 +517,7 @@ impl<P: Read + Write> Axis<P> {
     fn lost_step(&mut self) {
         self.in_step = false;
         self.io.discard();
+        self.halted();
         let _ = self.send(Command::Stop(CHANNEL, StopMode::Immediate));
     }
 
@@ -284,10 +539,15 @@ impl<P: Read + Write> Axis<P> {
                         )));
                     }
                     self.in_step = true;
+                    // A controller that reset forgot them: send them
+                    // again with the next move.
+                    self.speed_set = None;
                     return Ok(info);
                 }
                 Ok(_) => unreachable!("read_reply returns what was asked for"),
-                Err(e @ (AptError::Io(_) | AptError::Device { .. })) => return Err(e),
+                Err(e @ (AptError::Io(_) | AptError::Device { .. } | AptError::Untrusted(_))) => {
+                    return Err(e);
+                }
                 Err(e) => failure = Some(e),
             }
         }
@@ -345,12 +605,18 @@ impl<P: Read + Write> Axis<P> {
         let refuse = stray == Stray::Refuse;
         let deadline = Instant::now() + self.timeout;
         loop {
-            match self
-                .io
-                .read_frame()
-                .and_then(|frame| Reply::from_frame(&frame))
-            {
-                Ok(reply) => {
+            // Meant for another device, or from one: not an answer.
+            let frame = (self.io.read_frame())
+                .map(|frame| (frame.addresses() == (HOST, DEVICE)).then_some(frame));
+            match frame.and_then(|f| f.as_ref().map(Reply::from_frame).transpose()) {
+                Ok(None) => {}
+                Ok(Some(reply)) => {
+                    if let Reply::Status(status)
+                    | Reply::MoveStopped(status)
+                    | Reply::MoveCompleted(status) = &reply
+                    {
+                        self.inspect(status)?;
+                    }
                     if let Some(channel) = reply.channel().filter(|&c| c != CHANNEL && refuse) {
                         return Err(AptError::Unexpected(format!(
                             "{reply:?}: a reply for channel {}, the KDC101 has only channel {}",
@@ -381,6 +647,32 @@ impl<P: Read + Write> Axis<P> {
     }
 }
 
+impl<P: Read + Write> Axis<P> {
+    /// A status the controller sent: once connected, a limit switch, a
+    /// motion error, a current limit or a disabled channel ends the
+    /// driver's trust.
+    fn inspect(&mut self, status: &DcStatus) -> Result<(), AptError> {
+        if !self.connected {
+            return Ok(());
+        }
+        let mut faults: Vec<&str> = (FAULT_BITS.iter())
+            .filter(|(bit, _)| status.bits & bit != 0)
+            .map(|(_, what)| *what)
+            .collect();
+        if status.bits & ENABLED_BIT == 0 {
+            faults.push("its channel is disabled");
+        }
+        if faults.is_empty() {
+            return Ok(());
+        }
+        Err(self.distrust(format!(
+            "{} (status bits 0x{:08x})",
+            faults.join(", "),
+            status.bits
+        )))
+    }
+}
+
 /// What [`Axis::read_reply`] does with a message it did not ask for.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 enum Stray {
@@ -401,17 +693,16 @@ impl<P: Read + Write> Drop for Axis<P> {
 mod tests {
     use super::*;
     use crate::apt::FrameReader;
-    use crate::simulator::{ActuatorModel, SimulatedController};
+    use crate::simulator::{ActuatorModel, Malfunction, SimulatedController};
     use proptest::prelude::*;
-    use std::cell::RefCell;
     use std::collections::VecDeque;
-    use std::rc::Rc;
+    use std::sync::Mutex;
 
     /// The simulated controller behind an in-memory port: written frames
     /// are handled at once, replies are read back; an empty inbox times out.
     #[derive(Debug)]
     struct SimPort {
-        controller: Rc<RefCell<SimulatedController>>,
+        controller: Arc<Mutex<SimulatedController>>,
         written: Vec<u8>,
         inbox: VecDeque<u8>,
         silent: bool,
@@ -429,7 +720,8 @@ mod tests {
                 }
                 let replies = self
                     .controller
-                    .borrow_mut()
+                    .lock()
+                    .unwrap()
                     .handle(&frame)
                     .expect("valid commands");
                 for reply in replies {
@@ -469,10 +761,10 @@ mod tests {
     fn stage(
         silent: bool,
     ) -> (
-        Rc<RefCell<SimulatedController>>,
+        Arc<Mutex<SimulatedController>>,
         Result<Axis<SimPort>, AptError>,
     ) {
-        let controller = Rc::new(RefCell::new(SimulatedController::new(
+        let controller = Arc::new(Mutex::new(SimulatedController::new(
             27_000_007,
             ActuatorModel::default(),
         )));
@@ -483,17 +775,22 @@ mod tests {
             silent,
         };
         let stage = Axis::connect(port, Z8Units::default(), LIMITS, Duration::from_millis(50)).map(
-            |(stage, info)| {
+            |(mut stage, info)| {
                 assert_eq!(info.serial, 27_000_007);
+                // The driver judges readings by the simulation's time.
+                let (base, simulated) = (Instant::now(), controller.clone());
+                stage.clock = Clock(Arc::new(move || {
+                    base + Duration::from_secs_f64(simulated.lock().unwrap().elapsed_s())
+                }));
                 stage
             },
         );
         (controller, stage)
     }
 
-    fn advance(controller: &Rc<RefCell<SimulatedController>>, seconds: f64) {
+    fn advance(controller: &Arc<Mutex<SimulatedController>>, seconds: f64) {
         for _ in 0..(seconds * 1000.0).round() as usize {
-            controller.borrow_mut().advance(0.001);
+            controller.lock().unwrap().advance(0.001);
         }
     }
 
@@ -509,10 +806,10 @@ mod tests {
         assert_eq!(stage.set_velocity(f64::NAN).unwrap(), Commanded::Stopped);
         stage.set_velocity(-1.0).unwrap();
         advance(&controller, 0.2);
-        assert!(controller.borrow().status().moving());
+        assert!(controller.lock().unwrap().status().moving());
         drop(stage);
         assert!(
-            !controller.borrow().status().moving(),
+            !controller.lock().unwrap().status().moving(),
             "dropping the driver stops the motor"
         );
     }
@@ -531,7 +828,15 @@ mod tests {
         assert!(refused);
         advance(&controller, 2.0);
         let position = stage.position_mm().unwrap();
-        assert!(position < LIMITS.max_mm && position > 10.0, "{position}");
+        // It stops short by at most the margin at 2 mm/s: three command
+        // intervals (this one, and two a frozen encoder may hide) and the
+        // braking distance, at 1.25× the speed.
+        let fastest = 2.0 * (1.0 + SPEED_TOLERANCE);
+        let margin = fastest * 0.3 * 3.0 + fastest * fastest / 8.0;
+        assert!(
+            position < LIMITS.max_mm && position > LIMITS.max_mm - margin - 0.1,
+            "{position}"
+        );
         assert_eq!(stage.set_velocity(-2.0).unwrap(), Commanded::Moving(-2.0));
     }
 
@@ -555,12 +860,67 @@ mod tests {
             for (speed, interval) in commands {
                 stage.set_velocity(speed).unwrap();
                 for _ in 0..(interval * 1000.0).round() as usize {
-                    controller.borrow_mut().advance(0.001);
-                    let status = controller.borrow().status();
+                    controller.lock().unwrap().advance(0.001);
+                    let status = controller.lock().unwrap().status();
                     let position = units.mm(status.position);
                     prop_assert!((LIMITS.min_mm..=LIMITS.max_mm).contains(&position), "at {position}");
-                    let speed = controller.borrow().speed_mm_s().abs();
+                    let speed = controller.lock().unwrap().speed_mm_s().abs();
                     prop_assert!(speed <= LIMITS.max_speed_mm_s + 1e-3, "at {speed} mm/s");
+                }
+            }
+        }
+    }
+
+    proptest! {
+        #![proptest_config(ProptestConfig::with_cases(48))]
+
+        /// The same, with the hardware failing at a random command: a
+        /// motor that runs faster than told by as much as a reading may
+        /// show before it is a fault, a counter that jumps, or a power
+        /// cycle. The motor never passes a soft limit, and once the driver
+        /// has refused a move it never moves the motor again. (A frozen
+        /// encoder is not among them: under commands that stop and start
+        /// again within the readings it takes to find it, it can hide more
+        /// travel than the margin holds; `tests/untrusted_stage.rs` drives
+        /// one continuously.)
+        #[test]
+        fn never_past_the_limits_whatever_fails(
+            commands in prop::collection::vec((-10.0f64..10.0, 0.05f64..0.3), 1..60),
+            at in 0usize..60,
+            fault in 0usize..3,
+            jump in -8.0f64..8.0,
+        ) {
+            let (controller, stage) = stage(false);
+            let mut stage = stage.unwrap();
+            // Read once before anything fails, as the stage pair does at
+            // connect: a counter wrong from the first reading on can only
+            // be found by homing.
+            stage.position_mm().unwrap();
+            let mut refused = false;
+            for (k, (speed, interval)) in commands.into_iter().enumerate() {
+                if k == at {
+                    let mut c = controller.lock().unwrap();
+                    match fault {
+                        0 => c.set_malfunction(Some(Malfunction::Runaway(1.0 + SPEED_TOLERANCE))),
+                        1 => c.jump_counter(jump),
+                        _ => c.power_cycle(),
+                    }
+                }
+                let before = controller.lock().unwrap().carriage_mm();
+                let commanded = stage.position_mm().and_then(|_| stage.set_velocity(speed));
+                if refused {
+                    prop_assert!(commanded.is_err());
+                }
+                refused |= matches!(commanded, Err(AptError::Untrusted(_)));
+                for _ in 0..(interval * 1000.0).round() as usize {
+                    controller.lock().unwrap().advance(0.001);
+                    let motor = controller.lock().unwrap().carriage_mm();
+                    prop_assert!((LIMITS.min_mm..=LIMITS.max_mm).contains(&motor), "at {motor}");
+                }
+                if refused {
+                    let after = controller.lock().unwrap().carriage_mm();
+                    let moving = controller.lock().unwrap().speed_mm_s();
+                    prop_assert!(moving == 0.0 || (after - before).abs() < 1.0);
                 }
             }
         }

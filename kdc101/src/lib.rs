@@ -17,7 +17,7 @@ mod stage_pair;
 pub use axis::{Axis, AxisLimits, Commanded};
 pub use pty_simulator::{ControllerGuard, Fault, PtySimulator};
 pub use serial::open_port;
-pub use simulator::{ActuatorModel, SimulatedController};
+pub use simulator::{ActuatorModel, Malfunction, SimulatedController};
 pub use stage_pair::{
     Calibration, ImageAxis, SharedPort, StagePair, StagesConfig, StagesError, Stopper,
 };

@@ -101,6 +101,11 @@ impl PtySimulator {
         ControllerGuard(lock(&self.shared))
     }
 
+    /// Runs `f` on the simulated controller (to make its hardware fail).
+    pub fn with_controller<T>(&self, f: impl FnOnce(&mut SimulatedController) -> T) -> T {
+        f(&mut lock(&self.shared).controller)
+    }
+
     /// Makes the controller misbehave from now on (or behave again).
     pub fn set_fault(&self, fault: Option<Fault>) {
         lock(&self.shared).fault = fault;

@@ -4,7 +4,9 @@
 //! parameters, velocity, jog, relative, absolute and homing moves, stops,
 //! position and encoder counters, status requests and periodic status
 //! updates — and moves a simulated carriage with finite acceleration,
-//! hardware limit switches and backlash. [`crate::PtySimulator`] serves it
+//! hardware limit switches and backlash. Its hardware can be made to fail
+//! ([`Malfunction`], a counter jump, a power cycle) for tests of the
+//! driver. [`crate::PtySimulator`] serves it
 //! over a pseudo-terminal, so the real driver, or any other APT client,
 //! runs unchanged against it.
 
@@ -50,6 +52,15 @@ impl Default for ActuatorModel {
     }
 }
 
+/// Ways the simulated hardware itself fails, for tests of the driver.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum Malfunction {
+    /// The motor runs this many times faster than its profile says.
+    Runaway(f64),
+    /// The encoder's counter stays where it is while the motor moves on.
+    FrozenEncoder,
+}
+
 /// What the motor is doing.
 #[derive(Clone, Copy, Debug, PartialEq)]
 enum Motion {
@@ -93,6 +104,11 @@ pub struct SimulatedController {
     carriage_mm: f64,
     velocity_mm_s: f64,
     motion: Motion,
+    /// Simulated time since power-up, s.
+    elapsed_s: f64,
+    malfunction: Option<Malfunction>,
+    /// The counter's value while the encoder is frozen, mm.
+    frozen_mm: Option<f64>,
 }
 
 impl SimulatedController {
@@ -135,6 +151,9 @@ impl SimulatedController {
             carriage_mm: model.start_mm,
             velocity_mm_s: 0.0,
             motion: Motion::Idle,
+            elapsed_s: 0.0,
+            malfunction: None,
+            frozen_mm: None,
         }
     }
 
@@ -147,6 +166,39 @@ impl SimulatedController {
     /// The motor's signed speed, mm/s.
     pub fn speed_mm_s(&self) -> f64 {
         self.velocity_mm_s
+    }
+
+    /// Simulated time since power-up, s: the sum of every `advance`.
+    pub fn elapsed_s(&self) -> f64 {
+        self.elapsed_s
+    }
+
+    /// Makes the hardware fail from now on (or work again).
+    pub fn set_malfunction(&mut self, malfunction: Option<Malfunction>) {
+        self.frozen_mm = (malfunction == Some(Malfunction::FrozenEncoder))
+            .then_some(self.motor_mm - self.origin_mm);
+        self.malfunction = malfunction;
+    }
+
+    /// Shifts the position counter by `mm` at once, as a glitching
+    /// encoder does.
+    pub fn jump_counter(&mut self, mm: f64) {
+        self.origin_mm -= mm;
+    }
+
+    /// A power cycle: the motor stops where it is, the counter reads 0
+    /// there, the stage is no longer homed, every parameter is back at its
+    /// power-up value, and the channel is enabled (as a KDC101 powers up).
+    pub fn power_cycle(&mut self) {
+        let (motor_mm, carriage_mm, elapsed_s) = (self.motor_mm, self.carriage_mm, self.elapsed_s);
+        *self = Self {
+            motor_mm,
+            carriage_mm,
+            origin_mm: motor_mm,
+            enabled: true,
+            elapsed_s,
+            ..Self::new(self.serial, self.model)
+        };
     }
 
     /// Whether status updates are switched on (HW_START_UPDATEMSGS).
@@ -311,7 +363,7 @@ impl SimulatedController {
 
     /// The position counter, mm.
     fn counter_mm(&self) -> f64 {
-        self.motor_mm - self.origin_mm
+        self.frozen_mm.unwrap_or(self.motor_mm - self.origin_mm)
     }
 
     fn counter(&self) -> i32 {
@@ -327,6 +379,7 @@ impl SimulatedController {
     /// switch trips, MOVE_COMPLETED when a move arrives, MOVE_HOMED, and
     /// status updates every 100 ms while they are on.
     pub fn advance(&mut self, dt: f64) -> Vec<Frame> {
+        self.elapsed_s += dt;
         let mut events = Vec::new();
         let (top, accel) = self.profile();
         let step = accel * dt;
@@ -347,6 +400,10 @@ impl SimulatedController {
                 remaining.signum() * top.min(brake)
             }
             Motion::Stopping | Motion::Idle => 0.0,
+        };
+        let wanted = match self.malfunction {
+            Some(Malfunction::Runaway(factor)) => wanted * factor,
+            _ => wanted,
         };
         self.velocity_mm_s += (wanted - self.velocity_mm_s).clamp(-step, step);
         let before = self.counter_mm();

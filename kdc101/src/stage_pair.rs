@@ -22,6 +22,11 @@ pub struct StagesConfig {
     pub x_port: PathBuf,
     /// Serial port of the controller of the stage called Y.
     pub y_port: PathBuf,
+    /// Serial number of stage X's controller, when known: any other
+    /// controller found on `x_port` (the ports swapped, say) is refused.
+    pub x_serial: Option<u32>,
+    /// The same for stage Y.
+    pub y_serial: Option<u32>,
     /// Camera pixels per µm of stage travel.
     pub px_per_um: f64,
     /// Which stage moves the sample along the image's x axis ("x" or "y").
@@ -52,6 +57,8 @@ impl Default for StagesConfig {
         Self {
             x_port: PathBuf::from("/dev/ttyUSB0"),
             y_port: PathBuf::from("/dev/ttyUSB1"),
+            x_serial: None,
+            y_serial: None,
             px_per_um: 10.8,
             image_x: ImageAxis::X,
             x_sign: 1.0,

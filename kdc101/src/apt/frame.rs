@@ -74,6 +74,14 @@ pub enum AptError {
         /// The model it reports (HW_GET_INFO).
         model: String,
     },
+    /// The stage did not do what it was told, or its controller reported
+    /// a fault in its status: the driver stopped it, and refuses every
+    /// later move.
+    #[error(
+        "{0}. The motor was stopped and the driver moves it no more: check the stage, \
+         then restart the agent"
+    )]
+    Untrusted(String),
     /// The controller reported an error (HW_RESPONSE / HW_RICHRESPONSE).
     #[error("the controller reports error {code}: {text}")]
     Device {
@@ -89,6 +97,16 @@ impl Frame {
     pub fn id(&self) -> u16 {
         match self {
             Self::Short { id, .. } | Self::Long { id, .. } => *id,
+        }
+    }
+
+    /// The addresses in the header: destination (without the data flag)
+    /// and source.
+    pub fn addresses(&self) -> (u8, u8) {
+        match self {
+            Self::Short { dest, source, .. } | Self::Long { dest, source, .. } => {
+                (*dest & 0x7f, *source)
+            }
         }
     }
 

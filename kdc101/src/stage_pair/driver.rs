@@ -24,6 +24,24 @@ pub enum StagesError {
         /// Why.
         source: serialport::Error,
     },
+    /// Its port has another controller than the one configured.
+    #[error(
+        "stage {axis}'s port {port} has controller {found}, but stages.{field} is {expected}: \
+         USB serial ports can change names between boots and replugs; name each port by its \
+         /dev/serial/by-id/ path (or correct stages.{field})"
+    )]
+    Serial {
+        /// "X" or "Y".
+        axis: &'static str,
+        /// The port.
+        port: PathBuf,
+        /// The config field that names the expected serial.
+        field: &'static str,
+        /// The serial configured.
+        expected: u32,
+        /// The serial found.
+        found: u32,
+    },
     /// Its controller failed (its motor has been stopped).
     #[error("stage {axis}: {source}")]
     Device {
@@ -109,6 +127,24 @@ impl<P: Read + Write> StagePair<P> {
         };
         let (x, x_info) = connect(0, x)?;
         let (y, y_info) = connect(1, y)?;
+        let expected = [
+            (config.x_serial, "x_serial", &config.x_port),
+            (config.y_serial, "y_serial", &config.y_port),
+        ];
+        for (axis, (info, (serial, field, port))) in
+            [&x_info, &y_info].iter().zip(expected).enumerate()
+        {
+            if let Some(expected) = serial.filter(|&s| s != info.serial) {
+                // Dropping the drivers stops both motors.
+                return Err(StagesError::Serial {
+                    axis: NAMES[axis],
+                    port: port.clone(),
+                    field,
+                    expected,
+                    found: info.serial,
+                });
+            }
+        }
         let mut pair = Self {
             stages: [x, y],
             calibration: config.calibration(),
