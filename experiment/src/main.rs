@@ -33,10 +33,10 @@ enum Command {
     /// `--config` names a train file (`[env]`, `[learner]`, `[actor]`,
     /// `[train]`) instead of a preset.
     Train {
-        /// `lean` (the set network at the full field of view, for a 2-core
-        /// laptop), `quick` (the paper's CNN at 40 x 32, for a 2-core
-        /// laptop) or `paper` (the settings of `docs/spec.md`; for a GPU or
-        /// a cluster).
+        /// `lean` (the default: the set network at the full field of view,
+        /// the best on a 2-core laptop), `quick` (the paper's CNN at
+        /// 40 x 32, for a 2-core laptop) or `paper` (the settings of
+        /// `docs/spec.md`; for a GPU or a cluster).
         #[arg(long, conflicts_with = "config")]
         preset: Option<String>,
         /// Minutes of training (0: until Ctrl-C) instead of `train.minutes`.
@@ -117,7 +117,7 @@ fn main() -> anyhow::Result<()> {
             let (mut file, name) = match (&cli.config, preset) {
                 (Some(path), _) => (TrainFile::load(path)?, file_stem(path)),
                 (None, preset) => {
-                    let name = preset.unwrap_or_else(|| "quick".into());
+                    let name = preset.unwrap_or_else(|| "lean".into());
                     (TrainFile::preset(&name)?, name)
                 }
             };
