@@ -153,6 +153,9 @@ fn serve(master: File, shared: &Mutex<ServerState>, stop: &AtomicBool, latency: 
             match reader.read_frame() {
                 Ok(frame) => {
                     let mut state = lock(shared);
+                    // Brought up to now first: a real controller answers
+                    // with where it is when the request arrives.
+                    catch_up(&mut state, &mut last, &mut due, latency);
                     // A real controller ignores what it does not understand.
                     let replies = state.controller.handle(&frame).unwrap_or_default();
                     for reply in replies {
@@ -174,21 +177,15 @@ fn serve(master: File, shared: &Mutex<ServerState>, stop: &AtomicBool, latency: 
                 Err(_) => break,
             }
         }
-        let now = Instant::now();
-        {
+        let now = {
             let mut state = lock(shared);
-            let events = state.controller.advance((now - last).as_secs_f64());
-            for event in events {
-                if let Some(bytes) = faulty(state.fault, &event) {
-                    queue(&mut due, now + delay(state.fault, latency), bytes);
-                }
-            }
+            let now = catch_up(&mut state, &mut last, &mut due, latency);
             if !state.injected.is_empty() {
                 let bytes = std::mem::take(&mut state.injected);
                 due.insert(0, (now, bytes));
             }
-        }
-        last = now;
+            now
+        };
         let port = reader.get_mut();
         due.retain(|(at, bytes)| {
             if *at > now {
@@ -199,6 +196,24 @@ fn serve(master: File, shared: &Mutex<ServerState>, stop: &AtomicBool, latency: 
         });
         std::thread::sleep(Duration::from_millis(1));
     }
+}
+
+/// Moves the simulation on from `last` to now, queueing what the
+/// controller sends by itself; now.
+fn catch_up(
+    state: &mut ServerState,
+    last: &mut Instant,
+    due: &mut Vec<(Instant, Vec<u8>)>,
+    latency: Duration,
+) -> Instant {
+    let now = Instant::now();
+    for event in state.controller.advance((now - *last).as_secs_f64()) {
+        if let Some(bytes) = faulty(state.fault, &event) {
+            queue(due, now + delay(state.fault, latency), bytes);
+        }
+    }
+    *last = now;
+    now
 }
 
 /// Queues `bytes` to leave at `at`, or after the message queued before
