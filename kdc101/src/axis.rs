@@ -55,19 +55,6 @@ const STILL_READINGS: u32 = 2;
 /// two readings (accelerating from rest) for standing still to count:
 /// about 10 counts, under the agent's micrometre steps.
 const STILL_MIN_TRAVEL_MM: f64 = 0.0003;
-/// The KDC101's status bits that end the driver's trust, and what each
-/// means (APT protocol, MOT_GET_DCSTATUSUPDATE).
-const FAULT_BITS: [(u32, &str); 4] = [
-    (0x0000_0001, "its forward hardware limit switch is active"),
-    (0x0000_0002, "its reverse hardware limit switch is active"),
-    (
-        0x0000_4000,
-        "it reports a motion error (position error too large)",
-    ),
-    (0x0100_0000, "its motor reached the current limit"),
-];
-/// Status bit: the channel is enabled.
-const ENABLED_BIT: u32 = 0x8000_0000;
 
 /// What the stage may do.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -141,7 +128,7 @@ pub struct Axis<P: Read + Write> {
     /// reading, mm/s.
     fastest_since_read: f64,
     /// The slowest it has been commanded to move since then, mm/s (0 once
-    /// stopped or reversed).
+    /// stopped).
     slowest_since_read: f64,
     /// When a stop was sent with no move after it.
     halted_at: Option<Instant>,
@@ -461,13 +448,12 @@ impl<P: Read + Write> Axis<P> {
             self.speed_set = Some(units);
         }
         self.send(Command::MoveVelocity(CHANNEL, direction))?;
-        let speed_abs = speed.abs();
+        let (speed_abs, now) = (speed.abs(), self.clock.now());
         if self.halted_at.is_some() || self.moving != Some(direction) {
             // It may still be moving the other way at the last speed.
             let reversal = self.last_speed / self.limits.acceleration_mm_s2;
-            self.settled_at = self.clock.now() + Duration::from_secs_f64(reversal);
+            self.settled_at = now + Duration::from_secs_f64(reversal);
         }
-        let now = self.clock.now();
         self.bound_mm_s = self.speed_bound(now).max(speed_abs);
         self.bound_at = now;
         self.fastest_since_read = self.fastest_since_read.max(speed_abs);
@@ -645,9 +631,7 @@ impl<P: Read + Write> Axis<P> {
             }
         }
     }
-}
 
-impl<P: Read + Write> Axis<P> {
     /// A status the controller sent: once connected, a limit switch, a
     /// motion error, a current limit or a disabled channel ends the
     /// driver's trust.
@@ -655,13 +639,7 @@ impl<P: Read + Write> Axis<P> {
         if !self.connected {
             return Ok(());
         }
-        let mut faults: Vec<&str> = (FAULT_BITS.iter())
-            .filter(|(bit, _)| status.bits & bit != 0)
-            .map(|(_, what)| *what)
-            .collect();
-        if status.bits & ENABLED_BIT == 0 {
-            faults.push("its channel is disabled");
-        }
+        let faults = status.faults();
         if faults.is_empty() {
             return Ok(());
         }

@@ -258,6 +258,29 @@ impl DcStatus {
     pub fn enabled(&self) -> bool {
         self.bits & 0x8000_0000 != 0
     }
+
+    /// What the bits report that no move should go on after, in words: a
+    /// hardware limit switch, a motion error, the motor's current limit, a
+    /// disabled channel (empty when none).
+    pub fn faults(&self) -> Vec<&'static str> {
+        const FAULT_BITS: [(u32, &str); 4] = [
+            (0x0000_0001, "its forward hardware limit switch is active"),
+            (0x0000_0002, "its reverse hardware limit switch is active"),
+            (
+                0x0000_4000,
+                "it reports a motion error (position error too large)",
+            ),
+            (0x0100_0000, "its motor reached the current limit"),
+        ];
+        let mut faults: Vec<&str> = (FAULT_BITS.iter())
+            .filter(|(bit, _)| self.bits & bit != 0)
+            .map(|(_, what)| *what)
+            .collect();
+        if !self.enabled() {
+            faults.push("its channel is disabled");
+        }
+        faults
+    }
 }
 
 /// What the driver understands from the controller.
