@@ -1,6 +1,7 @@
 //! The hardware-agent command line: `run` (episodes on the instrument or
-//! its digital twin), `segment` (sphere centres in image files, for tuning
-//! segmentation on an instrument's own frames), `bench` and `config`.
+//! its digital twin), `home` (the stages, once after power-up), `segment`
+//! (sphere centres in image files, for tuning segmentation on an
+//! instrument's own frames), `bench` and `config`.
 
 mod commands;
 mod daemon;
@@ -33,6 +34,11 @@ struct Cli {
 enum Command {
     /// Print the effective configuration (the file over defaults) as TOML.
     Config,
+    /// Home both stages (each runs to its home limit switch, which zeroes
+    /// its counter) and park them in the middle of their soft limits; one
+    /// JSON line. Needed once after the controllers power up: until then
+    /// `run` and `serve` refuse to drive them (`stages.require_homed`).
+    Home,
     /// Run episodes, each recorded (JSON lines and a picture) under the
     /// records directory; prints one JSON line per episode.
     Run {
@@ -144,6 +150,7 @@ fn main() -> anyhow::Result<()> {
     let mut config = AgentConfig::load(cli.config.as_deref())?;
     match cli.command {
         Command::Config => print!("{}", config.to_toml()),
+        Command::Home => commands::home::run(&config)?,
         Command::Run {
             twin,
             episodes,

@@ -10,8 +10,10 @@
 //! read it gets back in step by purging the port (reading until it has
 //! been quiet for 50 ms, as the protocol asks at open) and asking the
 //! controller to identify itself; everything before that identification is
-//! stale and discarded. A position outside any Z8 actuator's travel is
-//! taken as garbled, never fed to the soft-limit check.
+//! stale and discarded. A reply a link delivers out of order is caught by
+//! the request that brackets every position request. A position outside any
+//! Z8 actuator's travel is taken as garbled, never fed to the soft-limit
+//! check.
 //!
 //! Nor does the driver believe a well-formed reading blindly. Frames not
 //! addressed from the controller to the host are discarded. Every position
@@ -21,7 +23,8 @@
 //! commanded to move (a frozen encoder, a stalled motor), is stopped and
 //! never moved again by this driver. So is one whose controller reports a
 //! limit switch, a motion error, a current limit or a disabled channel in
-//! any status message it sends.
+//! any status message it sends, or says that a stage it had homed is no
+//! longer homed (it reset).
 
 use crate::apt::{
     AptError, Channel, Command, DEVICE, DcStatus, Direction, FrameReader, HOST, HardwareInfo,
@@ -30,6 +33,7 @@ use crate::apt::{
 use std::io::{ErrorKind, Read, Write};
 use std::ops::RangeInclusive;
 use std::sync::Arc;
+use std::sync::atomic::{AtomicU64, Ordering};
 use std::time::{Duration, Instant};
 
 /// The KDC101's one channel.
@@ -48,13 +52,10 @@ const SPEED_TOLERANCE: f64 = 0.25;
 /// explain, mm: a few µm of quantisation and profile rounding, well under
 /// the 0.5 mm a soft limit usually keeps from the end of travel.
 const POSITION_SLACK_MM: f64 = 0.02;
-/// Readings in a row that find a stage commanded to move where it was
-/// before the driver takes its encoder as frozen (or its motor stalled).
-const STILL_READINGS: u32 = 2;
-/// Travel, mm, a stage commanded to move must make at the least between
-/// two readings (accelerating from rest) for standing still to count:
-/// about 10 counts, under the agent's micrometre steps.
-const STILL_MIN_TRAVEL_MM: f64 = 0.0003;
+/// Readings that find the stage ever further from where the commands sent
+/// would have taken it before the driver takes its encoder as frozen (or
+/// its motor stalled or slipping).
+const ASTRAY_READINGS: u32 = 2;
 
 /// What the stage may do.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -127,9 +128,19 @@ pub struct Axis<P: Read + Write> {
     /// The fastest the stage may have been commanded to move since that
     /// reading, mm/s.
     fastest_since_read: f64,
-    /// The slowest it has been commanded to move since then, mm/s (0 once
-    /// stopped).
-    slowest_since_read: f64,
+    /// Where the commands sent since the last reading that agreed with it
+    /// would have taken the motor.
+    nominal: Nominal,
+    /// Readings since it last agreed that found the stage further from it
+    /// than before, and how far off the last of them was, mm.
+    astray_readings: u32,
+    astray_mm: f64,
+    /// Immediate stops sent behind the driver's back (the pair's stopper),
+    /// and how many of them the driver has taken into account.
+    outside_stops: Option<(Arc<AtomicU64>, u64)>,
+    /// Whether one came since the last reading: where the motor stopped
+    /// is unknown until the next.
+    stopped_outside: bool,
     /// When a stop was sent with no move after it.
     halted_at: Option<Instant>,
     /// The fastest the motor could be moving at `bound_at`, mm/s: a speed
@@ -137,16 +148,13 @@ pub struct Axis<P: Read + Write> {
     /// at once.
     bound_mm_s: f64,
     bound_at: Instant,
-    /// The direction of the move in force, if any.
-    moving: Option<Direction>,
-    /// From when the motor can be moving that way: a reversal or a start
-    /// first brakes whatever motion went before.
-    settled_at: Instant,
-    /// Readings in a row that found the stage where it was, though
-    /// commanded to move.
-    still_readings: u32,
     /// Why the driver stopped trusting the stage, once it has.
     untrusted: Option<String>,
+    /// Whether the controller reported the stage homed (at connect, or
+    /// since [`Axis::home`]): a status that says otherwise is a reset.
+    homed: bool,
+    /// Homing is under way: the home limit switch is meant to trip.
+    homing: bool,
     clock: Clock,
 }
 
@@ -157,6 +165,70 @@ struct Reading {
     mm: f64,
     asked: Instant,
     answered: Instant,
+}
+
+/// Where the motor would be had it followed every command sent exactly:
+/// its speed moves toward the one commanded at the profile's acceleration.
+#[derive(Clone, Copy, Debug)]
+struct Nominal {
+    x_mm: f64,
+    v_mm_s: f64,
+    target_mm_s: f64,
+    at: Instant,
+    /// Distance covered since the last anchor, mm: how wrong the model
+    /// may have grown (within the overshoot allowed).
+    travel_mm: f64,
+}
+
+impl Nominal {
+    fn at_rest(x_mm: f64, at: Instant) -> Self {
+        Self {
+            x_mm,
+            v_mm_s: 0.0,
+            target_mm_s: 0.0,
+            at,
+            travel_mm: 0.0,
+        }
+    }
+
+    /// Moves the model on to `to`.
+    fn advance(&mut self, to: Instant, accel: f64) {
+        let dt = to.saturating_duration_since(self.at).as_secs_f64();
+        self.at = self.at.max(to);
+        let change = self.target_mm_s - self.v_mm_s;
+        let ramp = (change.abs() / accel).min(dt);
+        let v = self.v_mm_s + change.signum() * accel * ramp;
+        let ramp_mm = 0.5 * (self.v_mm_s + v) * ramp;
+        let cruise_mm = v * (dt - ramp);
+        // A ramp through zero covers both legs.
+        let ramp_path = if self.v_mm_s * v < 0.0 {
+            (self.v_mm_s * self.v_mm_s + v * v) / (2.0 * accel)
+        } else {
+            ramp_mm.abs()
+        };
+        self.x_mm += ramp_mm + cruise_mm;
+        self.travel_mm += ramp_path + cruise_mm.abs();
+        self.v_mm_s = v;
+    }
+
+    /// A velocity command (0: a profiled stop) sent at `now`.
+    fn command(&mut self, now: Instant, mm_per_s: f64, accel: f64) {
+        self.advance(now, accel);
+        self.target_mm_s = mm_per_s;
+    }
+
+    /// An immediate stop sent at `now`.
+    fn halt(&mut self, now: Instant, accel: f64) {
+        self.advance(now, accel);
+        self.v_mm_s = 0.0;
+        self.target_mm_s = 0.0;
+    }
+
+    /// A reading that agreed: the model goes on from there.
+    fn anchor(&mut self, x_mm: f64) {
+        self.x_mm = x_mm;
+        self.travel_mm = 0.0;
+    }
 }
 
 /// What a velocity command did.
@@ -191,14 +263,17 @@ impl<P: Read + Write> Axis<P> {
             connected: false,
             last_reading: None,
             fastest_since_read: 0.0,
-            slowest_since_read: 0.0,
+            nominal: Nominal::at_rest(0.0, Instant::now()),
+            astray_readings: 0,
+            astray_mm: 0.0,
+            outside_stops: None,
+            stopped_outside: false,
             halted_at: None,
             bound_mm_s: 0.0,
             bound_at: Instant::now(),
-            moving: None,
-            settled_at: Instant::now(),
-            still_readings: 0,
             untrusted: None,
+            homed: false,
+            homing: false,
             clock: Clock::default(),
         };
         let info = stage.resync()?;
@@ -218,8 +293,110 @@ impl<P: Read + Write> Axis<P> {
                 )));
             }
         }
+        stage.homed = stage.status()?.homed();
         stage.connected = true;
         Ok((stage, info))
+    }
+
+    /// Whether the stage has been homed since its controller powered up:
+    /// only then do its positions, and so the soft limits, refer to the
+    /// actuator's travel.
+    pub fn homed(&self) -> bool {
+        self.homed
+    }
+
+    /// Homes the stage and parks it in the middle of its soft limits; the
+    /// position it parked at, mm. Homing runs the motor to its home limit
+    /// switch at the controller's homing speed, which zeroes the counter
+    /// there; each leg's wait is bounded by the distance it may have to
+    /// travel.
+    pub fn home(&mut self) -> Result<f64, AptError> {
+        self.trusted()?;
+        if !self.in_step {
+            self.resync()?;
+        }
+        self.send(Command::RequestHome(CHANNEL))?;
+        let Reply::Home(_, params) = self.await_reply(|r| matches!(r, Reply::Home(..)))? else {
+            unreachable!("await_reply returns what was asked for")
+        };
+        let homing_speed = self.units.mm_per_s(params.velocity).abs();
+        if homing_speed == 0.0 || !homing_speed.is_finite() {
+            return Err(AptError::Unexpected(format!(
+                "a homing velocity of {} counts, which never reaches the limit switch: set the \
+                 controller's homing velocity (Kinesis: Settings, Home) and home again",
+                params.velocity
+            )));
+        }
+        self.homing = true;
+        let homed = self.home_and_park(homing_speed);
+        self.homing = false;
+        if homed.is_err() {
+            self.lost_step();
+        }
+        let park_mm = homed?;
+        if !self.status()?.homed() {
+            return Err(self.distrust(
+                "homing finished, but its controller does not report the stage homed".into(),
+            ));
+        }
+        self.homed = true;
+        // Judging starts afresh from the parked stage.
+        self.last_reading = None;
+        (self.astray_readings, self.astray_mm) = (0, 0.0);
+        self.carriage = None;
+        self.halted(StopMode::Immediate);
+        self.last_speed = 0.0;
+        self.bound_mm_s = 0.0;
+        Ok(park_mm)
+    }
+
+    /// The two legs of [`Axis::home`]: to the limit switch, then to the
+    /// middle of the soft limits at the fastest speed allowed.
+    fn home_and_park(&mut self, homing_speed: f64) -> Result<f64, AptError> {
+        let accel = self.limits.acceleration_mm_s2;
+        // Time to travel `mm` at `speed`, with the margin every bound here
+        // gives, and a start and stop at the profile's acceleration.
+        let leg = |mm: f64, speed: f64| {
+            Duration::from_secs_f64(
+                (mm / speed + 2.0 * speed / accel) * (1.0 + SPEED_TOLERANCE) + 1.0,
+            )
+        };
+        self.halted(StopMode::Immediate);
+        self.send(Command::Home(CHANNEL))?;
+        let travel = *PLAUSIBLE_MM.end();
+        self.read_reply(
+            |r| matches!(r, Reply::Homed(_)),
+            Stray::Refuse,
+            leg(travel, homing_speed),
+        )?;
+        let park_mm = 0.5 * (self.limits.min_mm + self.limits.max_mm);
+        let speed = self.limits.max_speed_mm_s;
+        let params = VelocityParams {
+            min_velocity: 0,
+            acceleration: self.units.acceleration(accel),
+            max_velocity: self.units.velocity(speed),
+        };
+        self.send(Command::SetVelocity(CHANNEL, params))?;
+        self.speed_set = Some(params.max_velocity);
+        self.send(Command::MoveAbsolute(
+            CHANNEL,
+            Some(self.units.counts(park_mm)),
+        ))?;
+        self.read_reply(
+            |r| matches!(r, Reply::MoveCompleted(_)),
+            Stray::Refuse,
+            leg(travel, speed),
+        )?;
+        Ok(park_mm)
+    }
+
+    /// The controller's status, asked for now.
+    fn status(&mut self) -> Result<DcStatus, AptError> {
+        self.send(Command::RequestStatus(CHANNEL))?;
+        match self.await_reply(|r| matches!(r, Reply::Status(_)))? {
+            Reply::Status(status) => Ok(status),
+            _ => unreachable!("await_reply returns what was asked for"),
+        }
     }
 
     /// Mitigates `backlash_mm` of lost motion: while the motor has play to
@@ -233,6 +410,31 @@ impl<P: Read + Write> Axis<P> {
             0.0
         };
         self
+    }
+
+    /// Counts the immediate stops sent to this controller from elsewhere
+    /// (the count `stops` keeps): the driver takes each as having stopped
+    /// the motor, somewhere, rather than as a stage gone astray.
+    pub fn with_outside_stops(mut self, stops: Arc<AtomicU64>) -> Self {
+        let seen = stops.load(Ordering::SeqCst);
+        self.outside_stops = Some((stops, seen));
+        self
+    }
+
+    /// Takes any outside stop sent since the last look into account: the
+    /// motor stands still now, where is unknown until the next reading.
+    fn notice_outside_stops(&mut self) {
+        let Some((stops, seen)) = &mut self.outside_stops else {
+            return;
+        };
+        let count = stops.load(Ordering::SeqCst);
+        if count != *seen {
+            *seen = count;
+            let now = self.clock.now();
+            self.nominal.halt(now, self.limits.acceleration_mm_s2);
+            self.halted_at.get_or_insert(now);
+            self.stopped_outside = true;
+        }
     }
 
     /// Where the carriage is, mm: the motor drags it along only once it has
@@ -260,11 +462,7 @@ impl<P: Read + Write> Axis<P> {
             self.resync()?;
         }
         let asked = self.clock.now();
-        self.send(Command::RequestPosition(CHANNEL))?;
-        let Reply::Position(_, counts) = self.await_reply(|r| matches!(r, Reply::Position(..)))?
-        else {
-            unreachable!("await_reply returns what was asked for")
-        };
+        let counts = self.bracketed_position()?;
         let answered = self.clock.now();
         let mm = self.units.mm(counts);
         if !PLAUSIBLE_MM.contains(&mm) {
@@ -281,11 +479,45 @@ impl<P: Read + Write> Axis<P> {
         Ok(mm)
     }
 
+    /// Asks for the position, then for the channel's enable state, and
+    /// takes the position only if exactly one came before that answer. A
+    /// position reply carries nothing to tell which request it answers:
+    /// one that comes late, after its request timed out and the driver got
+    /// back in step (from a controller or a link that reorders replies),
+    /// makes two, in this bracket or the next, and is never taken for the
+    /// fresh one.
+    fn bracketed_position(&mut self) -> Result<i32, AptError> {
+        self.send(Command::RequestPosition(CHANNEL))?;
+        self.send(Command::RequestEnabled(CHANNEL))?;
+        let mut positions = Vec::with_capacity(1);
+        let enabled = loop {
+            match self.await_reply(|r| matches!(r, Reply::Position(..) | Reply::Enabled(..)))? {
+                Reply::Position(_, counts) => positions.push(counts),
+                Reply::Enabled(_, enabled) => break enabled,
+                _ => unreachable!("await_reply returns what was asked for"),
+            }
+        };
+        if !enabled {
+            return Err(self.distrust("its channel is disabled".into()));
+        }
+        let what = match positions[..] {
+            [counts] => return Ok(counts),
+            [] => "no position reply before the answer to the request after it".to_string(),
+            _ => format!("{} position replies to one request", positions.len()),
+        };
+        self.lost_step();
+        Err(AptError::Unexpected(format!(
+            "{what}: the controller or its link lost a reply or sent one late, out of order; \
+             no position is used until the driver is back in step"
+        )))
+    }
+
     /// Judges a reading by the last: the stage cannot have moved further
     /// than the fastest speed commanded since allows (until a stop, then
     /// its braking distance), and a stage commanded to move throughout
     /// must have moved.
     fn judge(&mut self, reading: Reading) -> Result<(), AptError> {
+        let mut agreed = true;
         if let Some(last) = self.last_reading {
             let fastest = self.fastest_since_read;
             // The controller sampled each reading between its request
@@ -313,49 +545,50 @@ impl<P: Read + Write> Axis<P> {
                     moved.abs(),
                 )));
             }
-            // The least it moved, had it accelerated from rest once it
-            // could be moving this way (after the last reading, and after
-            // any reversal), at the slowest speed commanded since.
-            let slowest = self.slowest_since_read;
-            let least = if slowest > 0.0 {
-                let from = last.answered.max(self.settled_at);
-                let t = reading.asked.saturating_duration_since(from).as_secs_f64();
-                let a = self.limits.acceleration_mm_s2;
-                let reach = slowest / a;
-                if t < reach {
-                    0.5 * a * t * t
-                } else {
-                    slowest * (t - 0.5 * reach)
+            self.notice_outside_stops();
+            // Where the commands would have taken it, sampled between
+            // request and reply, give or take the overshoot allowed.
+            let accel = self.limits.acceleration_mm_s2;
+            let [a, b] = [reading.asked, reading.answered].map(|t| {
+                let mut at = self.nominal;
+                at.advance(t, accel);
+                at.x_mm
+            });
+            let slack = POSITION_SLACK_MM + SPEED_TOLERANCE * self.nominal.travel_mm;
+            let (lo, hi) = (a.min(b) - slack, a.max(b) + slack);
+            let off = (lo - reading.mm).max(reading.mm - hi).max(0.0);
+            agreed = off == 0.0 || self.stopped_outside;
+            if agreed {
+                (self.astray_readings, self.astray_mm) = (0, 0.0);
+            } else if off > self.astray_mm + POSITION_SLACK_MM {
+                // Further off than last time: a command that reached the
+                // controller late leaves a constant offset, a counter
+                // that does not follow the motor a growing one.
+                (self.astray_readings, self.astray_mm) = (self.astray_readings + 1, off);
+                if self.astray_readings >= ASTRAY_READINGS {
+                    return Err(self.distrust(format!(
+                        "the velocities commanded would have taken it to {:.4}–{:.4} mm, but \
+                         its position read {:.4} mm, further off at {ASTRAY_READINGS} readings \
+                         (a frozen encoder, or a stalled or slipping motor)",
+                        lo + slack,
+                        hi - slack,
+                        reading.mm
+                    )));
                 }
-            } else {
-                0.0
-            };
-            if least >= STILL_MIN_TRAVEL_MM {
-                if moved.abs() < 0.1 * least {
-                    self.still_readings += 1;
-                } else {
-                    self.still_readings = 0;
-                }
-            } else if moved.abs() >= 0.1 * STILL_MIN_TRAVEL_MM {
-                // Too soon after the last to judge, but it moved.
-                self.still_readings = 0;
             }
-            if self.still_readings >= STILL_READINGS {
-                return Err(self.distrust(format!(
-                    "commanded to move at {slowest:.3} mm/s or more, its position read \
-                     {:.4} mm for {STILL_READINGS} readings in a row (a frozen encoder or a \
-                     stalled motor)",
-                    reading.mm
-                )));
-            }
+        }
+        if self.last_reading.is_none() {
+            self.nominal = Nominal::at_rest(reading.mm, reading.answered);
         }
         self.last_reading = Some(reading);
         self.fastest_since_read = self.speed_bound(reading.asked);
-        self.slowest_since_read = if self.moving.is_some() && self.halted_at.is_none() {
-            self.last_speed
-        } else {
-            0.0
-        };
+        self.nominal
+            .advance(reading.answered, self.limits.acceleration_mm_s2);
+        if agreed {
+            // Model errors start afresh from here.
+            self.nominal.anchor(reading.mm);
+        }
+        self.stopped_outside = false;
         Ok(())
     }
 
@@ -423,9 +656,9 @@ impl<P: Read + Write> Axis<P> {
         // The stage may still be moving faster: bound the travel by that,
         // and by the overshoot a reading is allowed before it is a fault.
         let fastest = speed.abs().max(self.speed_bound(self.clock.now())) * (1.0 + SPEED_TOLERANCE);
-        // A frozen encoder hides motion for up to STILL_READINGS readings
+        // A frozen encoder hides motion for up to ASTRAY_READINGS readings
         // before it is found: the margin covers that travel too.
-        let intervals = 1.0 + f64::from(STILL_READINGS);
+        let intervals = 1.0 + f64::from(ASTRAY_READINGS);
         let reach = fastest * self.limits.command_interval_s * intervals
             + fastest * fastest / (2.0 * self.limits.acceleration_mm_s2);
         let blocked = if speed > 0.0 {
@@ -449,17 +682,13 @@ impl<P: Read + Write> Axis<P> {
         }
         self.send(Command::MoveVelocity(CHANNEL, direction))?;
         let (speed_abs, now) = (speed.abs(), self.clock.now());
-        if self.halted_at.is_some() || self.moving != Some(direction) {
-            // It may still be moving the other way at the last speed.
-            let reversal = self.last_speed / self.limits.acceleration_mm_s2;
-            self.settled_at = now + Duration::from_secs_f64(reversal);
-        }
+        self.notice_outside_stops();
+        self.nominal
+            .command(now, speed, self.limits.acceleration_mm_s2);
         self.bound_mm_s = self.speed_bound(now).max(speed_abs);
         self.bound_at = now;
         self.fastest_since_read = self.fastest_since_read.max(speed_abs);
-        self.slowest_since_read = self.slowest_since_read.min(speed_abs);
         self.halted_at = None;
-        self.moving = Some(direction);
         self.last_speed = speed_abs;
         Ok(Commanded::Moving(speed))
     }
@@ -467,16 +696,22 @@ impl<P: Read + Write> Axis<P> {
     /// Stops the motor. A stop is never refused, whatever the driver
     /// thinks of the stage.
     pub fn stop(&mut self, mode: StopMode) -> Result<(), AptError> {
-        self.halted();
+        self.halted(mode);
         self.send(Command::Stop(CHANNEL, mode))
     }
 
-    /// Notes that a stop is being sent: the stage slows from here on.
-    fn halted(&mut self) {
+    /// Notes that a stop is being sent: the stage slows from here on, at
+    /// once or along the profile.
+    fn halted(&mut self, mode: StopMode) {
+        self.notice_outside_stops();
         let now = self.clock.now();
         self.halted_at.get_or_insert(now);
-        self.moving = None;
-        self.slowest_since_read = 0.0;
+        match mode {
+            StopMode::Immediate => self.nominal.halt(now, self.limits.acceleration_mm_s2),
+            StopMode::Profiled => self
+                .nominal
+                .command(now, 0.0, self.limits.acceleration_mm_s2),
+        }
     }
 
     fn send(&mut self, command: Command) -> Result<(), AptError> {
@@ -491,7 +726,7 @@ impl<P: Read + Write> Axis<P> {
     /// other message is an error: the motor is stopped (immediately) and
     /// the driver out of step before it is returned.
     fn await_reply(&mut self, wanted: impl Fn(&Reply) -> bool) -> Result<Reply, AptError> {
-        let reply = self.read_reply(wanted, Stray::Refuse);
+        let reply = self.read_reply(wanted, Stray::Refuse, self.timeout);
         if reply.is_err() {
             self.lost_step();
         }
@@ -503,7 +738,7 @@ impl<P: Read + Write> Axis<P> {
     fn lost_step(&mut self) {
         self.in_step = false;
         self.io.discard();
-        self.halted();
+        self.halted(StopMode::Immediate);
         let _ = self.send(Command::Stop(CHANNEL, StopMode::Immediate));
     }
 
@@ -516,7 +751,11 @@ impl<P: Read + Write> Axis<P> {
         for _ in 0..RESYNC_ATTEMPTS {
             self.purge()?;
             self.send(Command::RequestInfo)?;
-            match self.read_reply(|r| matches!(r, Reply::Info(_)), Stray::Discard) {
+            match self.read_reply(
+                |r| matches!(r, Reply::Info(_)),
+                Stray::Discard,
+                self.timeout,
+            ) {
                 Ok(Reply::Info(info)) => {
                     if let Some(serial) = self.serial.filter(|&s| s != info.serial) {
                         return Err(AptError::Unexpected(format!(
@@ -528,6 +767,10 @@ impl<P: Read + Write> Axis<P> {
                     // A controller that reset forgot them: send them
                     // again with the next move.
                     self.speed_set = None;
+                    if self.connected {
+                        // A reset shows in the status (homing lost).
+                        self.status()?;
+                    }
                     return Ok(info);
                 }
                 Ok(_) => unreachable!("read_reply returns what was asked for"),
@@ -578,7 +821,7 @@ impl<P: Read + Write> Axis<P> {
         }
     }
 
-    /// The next reply `wanted` accepts within the timeout. Status messages
+    /// The next reply `wanted` accepts `within` this time. Status messages
     /// the controller sends by itself are skipped; what else comes unasked
     /// (a reply for another channel, another message, garbled bytes) is an
     /// error or discarded, as `stray` says. A controller's error report and
@@ -587,9 +830,10 @@ impl<P: Read + Write> Axis<P> {
         &mut self,
         wanted: impl Fn(&Reply) -> bool,
         stray: Stray,
+        within: Duration,
     ) -> Result<Reply, AptError> {
         let refuse = stray == Stray::Refuse;
-        let deadline = Instant::now() + self.timeout;
+        let deadline = Instant::now() + within;
         loop {
             // Meant for another device, or from one: not an answer.
             let frame = (self.io.read_frame())
@@ -627,19 +871,26 @@ impl<P: Read + Write> Axis<P> {
                 Err(_) => {}
             }
             if Instant::now() >= deadline {
-                return Err(AptError::Timeout(self.timeout));
+                return Err(AptError::Timeout(within));
             }
         }
     }
 
     /// A status the controller sent: once connected, a limit switch, a
-    /// motion error, a current limit or a disabled channel ends the
-    /// driver's trust.
+    /// motion error, a current limit, a disabled channel or a homed stage
+    /// no longer homed ends the driver's trust. Homing runs into a limit
+    /// switch by design, and is judged by its end instead.
     fn inspect(&mut self, status: &DcStatus) -> Result<(), AptError> {
-        if !self.connected {
+        if !self.connected || self.homing {
             return Ok(());
         }
-        let faults = status.faults();
+        let mut faults = status.faults();
+        if self.homed && !status.homed() {
+            faults.push(
+                "it is no longer homed (its controller reset): its counter no longer refers \
+                 to the actuator's travel",
+            );
+        }
         if faults.is_empty() {
             return Ok(());
         }
@@ -854,18 +1105,15 @@ mod tests {
 
         /// The same, with the hardware failing at a random command: a
         /// motor that runs faster than told by as much as a reading may
-        /// show before it is a fault, a counter that jumps, or a power
-        /// cycle. The motor never passes a soft limit, and once the driver
-        /// has refused a move it never moves the motor again. (A frozen
-        /// encoder is not among them: under commands that stop and start
-        /// again within the readings it takes to find it, it can hide more
-        /// travel than the margin holds; `tests/untrusted_stage.rs` drives
-        /// one continuously.)
+        /// show before it is a fault, a counter that jumps, a frozen
+        /// encoder, or a power cycle. The motor never passes a soft limit,
+        /// and once the driver has refused a move it never moves the motor
+        /// again.
         #[test]
         fn never_past_the_limits_whatever_fails(
             commands in prop::collection::vec((-10.0f64..10.0, 0.05f64..0.3), 1..60),
             at in 0usize..60,
-            fault in 0usize..3,
+            fault in 0usize..4,
             jump in -8.0f64..8.0,
         ) {
             let (controller, stage) = stage(false);
@@ -881,6 +1129,7 @@ mod tests {
                     match fault {
                         0 => c.set_malfunction(Some(Malfunction::Runaway(1.0 + SPEED_TOLERANCE))),
                         1 => c.jump_counter(jump),
+                        2 => c.set_malfunction(Some(Malfunction::FrozenEncoder)),
                         _ => c.power_cycle(),
                     }
                 }
@@ -928,6 +1177,7 @@ mod tests {
                     Command::from_frame(&frame),
                     Ok(Command::RequestInfo
                         | Command::RequestEnabled(_)
+                        | Command::RequestStatus(_)
                         | Command::RequestPosition(_))
                 );
                 if let Some(reply) = request.then(|| self.replies.pop_front()).flatten() {
@@ -994,6 +1244,12 @@ mod tests {
         let mut axis = connect_to(&[
             info("KDC101"),
             Reply::Enabled(CHANNEL, true),
+            Reply::Status(DcStatus {
+                channel: CHANNEL,
+                position: 0,
+                velocity: 0,
+                bits: 0x8000_0400,
+            }),
             Reply::Position(Channel(2), 0),
         ])
         .unwrap();

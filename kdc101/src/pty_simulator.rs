@@ -3,7 +3,7 @@
 //! simulation runs in real time on its own thread, replies after a set
 //! latency, and can be told to misbehave.
 
-use crate::apt::{AptError, Frame, FrameReader};
+use crate::apt::{AptError, Frame, FrameReader, Reply};
 use crate::simulator::{ActuatorModel, SimulatedController};
 use nix::fcntl::{FcntlArg, OFlag, fcntl};
 use nix::pty::openpty;
@@ -30,6 +30,10 @@ pub enum Fault {
     Failing,
     /// Its replies leave this much later than usual.
     Late(Duration),
+    /// Its next position reply leaves this much later than usual, behind
+    /// the replies to later requests (a controller answers in order; a
+    /// link or a fake that reorders replies does not); then it behaves.
+    Straggler(Duration),
 }
 
 /// State shared between the server thread and its owner.
@@ -147,6 +151,8 @@ fn lock(shared: &Mutex<ServerState>) -> MutexGuard<'_, ServerState> {
 fn serve(master: File, shared: &Mutex<ServerState>, stop: &AtomicBool, latency: Duration) {
     let mut reader = FrameReader::new(master);
     let mut due: Vec<(Instant, Vec<u8>)> = Vec::new();
+    // Out of order: each leaves when its time comes, whatever is queued.
+    let mut stragglers: Vec<(Instant, Vec<u8>)> = Vec::new();
     let mut last = Instant::now();
     while !stop.load(Ordering::Relaxed) {
         loop {
@@ -159,7 +165,13 @@ fn serve(master: File, shared: &Mutex<ServerState>, stop: &AtomicBool, latency: 
                     // A real controller ignores what it does not understand.
                     let replies = state.controller.handle(&frame).unwrap_or_default();
                     for reply in replies {
-                        if let Some(bytes) = faulty(state.fault, &reply) {
+                        if let Some(Fault::Straggler(extra)) = state.fault
+                            && Reply::from_frame(&reply)
+                                .is_ok_and(|r| matches!(r, Reply::Position(..)))
+                        {
+                            state.fault = None;
+                            stragglers.push((Instant::now() + latency + extra, reply.encode()));
+                        } else if let Some(bytes) = faulty(state.fault, &reply) {
                             queue(
                                 &mut due,
                                 Instant::now() + delay(state.fault, latency),
@@ -187,13 +199,15 @@ fn serve(master: File, shared: &Mutex<ServerState>, stop: &AtomicBool, latency: 
             now
         };
         let port = reader.get_mut();
-        due.retain(|(at, bytes)| {
-            if *at > now {
-                return true;
-            }
-            let _ = port.write_all(bytes);
-            false
-        });
+        for queue in [&mut due, &mut stragglers] {
+            queue.retain(|(at, bytes)| {
+                if *at > now {
+                    return true;
+                }
+                let _ = port.write_all(bytes);
+                false
+            });
+        }
         std::thread::sleep(Duration::from_millis(1));
     }
 }
@@ -235,7 +249,7 @@ fn delay(fault: Option<Fault>, latency: Duration) -> Duration {
 fn faulty(fault: Option<Fault>, frame: &Frame) -> Option<Vec<u8>> {
     let bytes = frame.encode();
     match fault {
-        None | Some(Fault::Late(_)) => Some(bytes),
+        None | Some(Fault::Late(_) | Fault::Straggler(_)) => Some(bytes),
         Some(Fault::Silent) => None,
         Some(Fault::Truncated) => Some(bytes[..bytes.len() / 2].to_vec()),
         // MOT_MOVE_HOMED: never asked for by the driver.

@@ -40,6 +40,10 @@ pub struct ActuatorModel {
     pub backlash_mm: f64,
     /// Where the motor starts, mm.
     pub start_mm: f64,
+    /// Whether the stage starts homed (as after an operator homed it once
+    /// since power-up), its counter reading the motor's distance from the
+    /// reverse limit.
+    pub homed: bool,
 }
 
 impl Default for ActuatorModel {
@@ -48,6 +52,7 @@ impl Default for ActuatorModel {
             travel_mm: 12.0,
             backlash_mm: 0.008,
             start_mm: 6.0,
+            homed: true,
         }
     }
 }
@@ -145,7 +150,7 @@ impl SimulatedController {
             backlash: 0,
             relative_distance: 0,
             absolute_position: 0,
-            homed: false,
+            homed: model.homed,
             origin_mm: 0.0,
             motor_mm: model.start_mm,
             carriage_mm: model.start_mm,
@@ -196,6 +201,7 @@ impl SimulatedController {
             carriage_mm,
             origin_mm: motor_mm,
             enabled: true,
+            homed: false,
             elapsed_s,
             ..Self::new(self.serial, self.model)
         };

@@ -27,6 +27,9 @@ pub struct StagesConfig {
     pub x_serial: Option<u32>,
     /// The same for stage Y.
     pub y_serial: Option<u32>,
+    /// Refuse to drive a stage that has not been homed since its
+    /// controller powered up (`hardware-agent home` homes both).
+    pub require_homed: bool,
     /// Camera pixels per µm of stage travel.
     pub px_per_um: f64,
     /// Which stage moves the sample along the image's x axis ("x" or "y").
@@ -59,6 +62,7 @@ impl Default for StagesConfig {
             y_port: PathBuf::from("/dev/ttyUSB1"),
             x_serial: None,
             y_serial: None,
+            require_homed: true,
             px_per_um: 10.8,
             image_x: ImageAxis::X,
             x_sign: 1.0,

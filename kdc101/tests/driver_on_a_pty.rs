@@ -86,6 +86,7 @@ fn a_silent_truncated_unexpected_or_failing_reply_is_an_error_and_the_motor_stop
         Fault::Truncated,
         Fault::Unexpected,
         Fault::Failing,
+        Fault::Straggler(Duration::from_millis(450)),
     ] {
         let twin = twin();
         let mut stage = connect(&twin);
@@ -103,7 +104,7 @@ fn a_silent_truncated_unexpected_or_failing_reply_is_an_error_and_the_motor_stop
                 // is for a loaded 2-core machine.
                 assert!(waited < Duration::from_secs(1), "{waited:?}");
             }
-            Fault::Unexpected => {
+            Fault::Unexpected | Fault::Straggler(_) => {
                 assert!(
                     matches!(error, AptError::Unexpected(_)),
                     "{fault:?}: {error}"
@@ -245,6 +246,60 @@ fn after_a_late_reply_or_half_a_frame_every_position_read_is_fresh() {
             );
         }
     }
+}
+
+#[test]
+fn a_reply_that_comes_after_later_ones_is_never_taken_for_a_fresh_one() {
+    let twin = twin();
+    let mut stage = connect(&twin);
+    let mut errors = Vec::new();
+    let mut refused = |e: AptError| {
+        // A stale reading taken would look like a counter that jumped.
+        assert!(!matches!(e, AptError::Untrusted(_)), "{e}");
+        errors.push(e.to_string());
+    };
+    let mut fresh = 0;
+    for _ in 0..3 {
+        twin.set_fault(Some(Fault::Straggler(Duration::from_millis(450))));
+        let started = Instant::now();
+        let mut moving = false;
+        while started.elapsed() < Duration::from_millis(900) {
+            // Moving, so that a reply to a request 450 ms earlier is
+            // 0.2 mm off. Every error stops the motor.
+            if !moving {
+                match stage.set_velocity(0.5) {
+                    Ok(_) => moving = true,
+                    Err(e) => {
+                        refused(e);
+                        continue;
+                    }
+                }
+            }
+            std::thread::sleep(Duration::from_millis(50));
+            let before = counter_mm(&twin);
+            match stage.position_mm() {
+                Ok(read) => {
+                    let after = counter_mm(&twin);
+                    assert!(
+                        (before - 1e-3..=after + 1e-3).contains(&read),
+                        "read {read} mm, the counter went from {before} to {after} mm"
+                    );
+                    fresh += 1;
+                }
+                Err(e) => {
+                    refused(e);
+                    moving = false;
+                }
+            }
+        }
+    }
+    // Each straggler is missed where it was asked for, and found extra
+    // where it came.
+    let count = |what: &str| errors.iter().filter(|e| e.contains(what)).count();
+    assert_eq!(count("no position reply"), 3, "{errors:?}");
+    assert_eq!(count("2 position replies"), 3, "{errors:?}");
+    assert_eq!(errors.len(), 6, "{errors:?}");
+    assert!(fresh >= 10, "{fresh} fresh readings");
 }
 
 #[test]

@@ -19,7 +19,11 @@ fn thorlabs_apt_device_homes_moves_and_reads_the_simulated_kdc101() {
     let spawn = |serial| {
         kdc101::PtySimulator::spawn(
             serial,
-            kdc101::ActuatorModel::default(),
+            // As a KDC101 powers up: not homed.
+            kdc101::ActuatorModel {
+                homed: false,
+                ..Default::default()
+            },
             Duration::from_millis(2),
         )
         .unwrap()

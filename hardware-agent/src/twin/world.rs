@@ -71,6 +71,8 @@ impl TwinStages {
             travel_mm: 12.0,
             backlash_mm: config.backlash_um / 1000.0,
             start_mm: config.start_mm,
+            // As after `hardware-agent home`.
+            homed: true,
         };
         let latency = Duration::from_millis(config.latency_ms);
         Ok(Self([

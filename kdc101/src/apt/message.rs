@@ -259,6 +259,12 @@ impl DcStatus {
         self.bits & 0x8000_0000 != 0
     }
 
+    /// Homed since the controller powered up (bit 10): only then does the
+    /// position counter refer to the actuator's travel.
+    pub fn homed(&self) -> bool {
+        self.bits & 0x400 != 0
+    }
+
     /// What the bits report that no move should go on after, in words: a
     /// hardware limit switch, a motion error, the motor's current limit, a
     /// disabled channel (empty when none).

@@ -42,14 +42,40 @@ pub enum StagesError {
         /// The serial found.
         found: u32,
     },
-    /// Its controller failed (its motor has been stopped).
-    #[error("stage {axis}: {source}")]
+    /// Its stage has not been homed since its controller powered up.
+    #[error(
+        "stage {axis} (controller {serial}) has not been homed since its controller powered \
+         up: its position counter does not refer to the actuator's travel, so the soft limits \
+         would mean nothing. Run `hardware-agent home`, or set stages.require_homed = false \
+         if its counter was set another way"
+    )]
+    NotHomed {
+        /// "X" or "Y".
+        axis: &'static str,
+        /// Its controller's serial number.
+        serial: u32,
+    },
+    /// Its controller failed (its motor has been stopped, unless its port
+    /// failed: then the message says it may still be moving).
+    #[error("stage {axis}: {source}{}", unreachable_hint(.source))]
     Device {
         /// "X" or "Y".
         axis: &'static str,
         /// What the driver saw.
         source: AptError,
     },
+}
+
+/// What a failed port means for the motor behind it: no stop reaches it.
+fn unreachable_hint(error: &AptError) -> &'static str {
+    match error {
+        AptError::Io(_) => {
+            ". No stop can reach its controller through this port: if the controller is still \
+             powered, its motor may still be moving, up to its limit switch. Stop it at the \
+             controller (its front panel, or its power)"
+        }
+        _ => "",
+    }
 }
 
 /// Both stages, their calibration, and where they stood when connected
@@ -119,7 +145,11 @@ impl<P: Read + Write> StagePair<P> {
         let [x, y] = shared;
         let connect = |axis: usize, port| {
             Axis::connect(port, Z8Units::default(), limits, timeout)
-                .map(|(stage, info)| (stage.with_backlash(config.backlash_um / 1000.0), info))
+                .map(|(stage, info)| {
+                    let stage = (stage.with_backlash(config.backlash_um / 1000.0))
+                        .with_outside_stops(stopper.stops());
+                    (stage, info)
+                })
                 .map_err(|source| StagesError::Device {
                     axis: NAMES[axis],
                     source,
@@ -143,6 +173,16 @@ impl<P: Read + Write> StagePair<P> {
                     expected,
                     found: info.serial,
                 });
+            }
+        }
+        if config.require_homed {
+            for (axis, (stage, info)) in [(&x, &x_info), (&y, &y_info)].into_iter().enumerate() {
+                if !stage.homed() {
+                    return Err(StagesError::NotHomed {
+                        axis: NAMES[axis],
+                        serial: info.serial,
+                    });
+                }
             }
         }
         let mut pair = Self {
@@ -170,6 +210,18 @@ impl<P: Read + Write> StagePair<P> {
         Ok(out
             .try_into()
             .unwrap_or_else(|_| unreachable!("two stages")))
+    }
+
+    /// Homes both stages, one after the other, and parks each in the
+    /// middle of its soft limits; where they parked (X, Y), mm. The trap's
+    /// world origin moves there.
+    pub fn home(&mut self) -> Result<[f64; 2], StagesError> {
+        let parked = self.each(|_, stage| stage.home());
+        if parked.is_err() {
+            let _ = self.stopper.stop_now();
+        }
+        self.origin_mm = self.position_mm()?;
+        parked
     }
 
     /// Where the carriages are (X, Y), mm.

@@ -5,6 +5,7 @@
 use crate::apt::{Command, StopMode};
 use crate::axis::CHANNEL;
 use std::io::{Read, Write};
+use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, MutexGuard};
 
 /// A port behind a lock; clones share it.
@@ -57,18 +58,33 @@ impl<P: Write> Write for SharedPort<P> {
 
 /// Stops motors from any thread, whatever their drivers are doing.
 #[derive(Debug)]
-pub struct Stopper<P>(Vec<SharedPort<P>>);
+pub struct Stopper<P> {
+    ports: Vec<SharedPort<P>>,
+    /// Stops sent, for the drivers to tell them from a stalled motor.
+    stops: Arc<AtomicU64>,
+}
 
 impl<P> Clone for Stopper<P> {
     fn clone(&self) -> Self {
-        Self(self.0.clone())
+        Self {
+            ports: self.ports.clone(),
+            stops: self.stops.clone(),
+        }
     }
 }
 
 impl<P: Write> Stopper<P> {
     /// A stopper for the controllers on `ports`.
     pub fn new(ports: Vec<SharedPort<P>>) -> Self {
-        Self(ports)
+        Self {
+            ports,
+            stops: Arc::new(AtomicU64::new(0)),
+        }
+    }
+
+    /// The count of stops sent, which rises before each goes out.
+    pub fn stops(&self) -> Arc<AtomicU64> {
+        self.stops.clone()
     }
 
     /// Sends an immediate stop to every controller; the first error is
@@ -77,8 +93,9 @@ impl<P: Write> Stopper<P> {
         let frame = Command::Stop(CHANNEL, StopMode::Immediate)
             .to_frame()
             .encode();
+        self.stops.fetch_add(1, Ordering::SeqCst);
         let mut result = Ok(());
-        for port in &self.0 {
+        for port in &self.ports {
             let mut port = port.lock();
             let sent = port.write_all(&frame).and_then(|()| port.flush());
             if result.is_ok() {
