@@ -19,9 +19,9 @@
 //! addressed from the controller to the host are discarded. Every position
 //! is judged against the last: a stage that moved further than the speeds
 //! commanded since allow (a runaway motor, a counter that jumped, a
-//! controller that reset), or that stood still over several readings while
-//! commanded to move (a frozen encoder, a stalled motor), is stopped and
-//! never moved again by this driver. So is one whose controller reports a
+//! controller that reset), or that strays ever further from where the
+//! commands sent would have taken it (a frozen encoder, a stalled motor),
+//! is stopped and never moved again by this driver. So is one whose controller reports a
 //! limit switch, a motion error, a current limit or a disabled channel in
 //! any status message it sends, or says that a stage it had homed is no
 //! longer homed (it reset).
@@ -371,13 +371,7 @@ impl<P: Read + Write> Axis<P> {
         )?;
         let park_mm = 0.5 * (self.limits.min_mm + self.limits.max_mm);
         let speed = self.limits.max_speed_mm_s;
-        let params = VelocityParams {
-            min_velocity: 0,
-            acceleration: self.units.acceleration(accel),
-            max_velocity: self.units.velocity(speed),
-        };
-        self.send(Command::SetVelocity(CHANNEL, params))?;
-        self.speed_set = Some(params.max_velocity);
+        self.set_speed(self.units.velocity(speed))?;
         self.send(Command::MoveAbsolute(
             CHANNEL,
             Some(self.units.counts(park_mm)),
@@ -514,8 +508,8 @@ impl<P: Read + Write> Axis<P> {
 
     /// Judges a reading by the last: the stage cannot have moved further
     /// than the fastest speed commanded since allows (until a stop, then
-    /// its braking distance), and a stage commanded to move throughout
-    /// must have moved.
+    /// its braking distance), nor stray ever further from where the
+    /// commands sent would have taken it.
     fn judge(&mut self, reading: Reading) -> Result<(), AptError> {
         let mut agreed = true;
         if let Some(last) = self.last_reading {
@@ -549,12 +543,11 @@ impl<P: Read + Write> Axis<P> {
             // Where the commands would have taken it, sampled between
             // request and reply, give or take the overshoot allowed.
             let accel = self.limits.acceleration_mm_s2;
-            let [a, b] = [reading.asked, reading.answered].map(|t| {
-                let mut at = self.nominal;
-                at.advance(t, accel);
-                at.x_mm
-            });
             let slack = POSITION_SLACK_MM + SPEED_TOLERANCE * self.nominal.travel_mm;
+            let [a, b] = [reading.asked, reading.answered].map(|t| {
+                self.nominal.advance(t, accel);
+                self.nominal.x_mm
+            });
             let (lo, hi) = (a.min(b) - slack, a.max(b) + slack);
             let off = (lo - reading.mm).max(reading.mm - hi).max(0.0);
             agreed = off == 0.0 || self.stopped_outside;
@@ -582,8 +575,6 @@ impl<P: Read + Write> Axis<P> {
         }
         self.last_reading = Some(reading);
         self.fastest_since_read = self.speed_bound(reading.asked);
-        self.nominal
-            .advance(reading.answered, self.limits.acceleration_mm_s2);
         if agreed {
             // Model errors start afresh from here.
             self.nominal.anchor(reading.mm);
@@ -670,16 +661,7 @@ impl<P: Read + Write> Axis<P> {
             self.stop(StopMode::Profiled)?;
             return Ok(Commanded::Stopped);
         }
-        let units = self.units.velocity(speed.abs());
-        if self.speed_set != Some(units) {
-            let params = VelocityParams {
-                min_velocity: 0,
-                acceleration: self.units.acceleration(self.limits.acceleration_mm_s2),
-                max_velocity: units,
-            };
-            self.send(Command::SetVelocity(CHANNEL, params))?;
-            self.speed_set = Some(units);
-        }
+        self.set_speed(self.units.velocity(speed.abs()))?;
         self.send(Command::MoveVelocity(CHANNEL, direction))?;
         let (speed_abs, now) = (speed.abs(), self.clock.now());
         self.notice_outside_stops();
@@ -691,6 +673,21 @@ impl<P: Read + Write> Axis<P> {
         self.halted_at = None;
         self.last_speed = speed_abs;
         Ok(Commanded::Moving(speed))
+    }
+
+    /// Sets the velocity profile's top speed (device units) at the
+    /// configured acceleration, unless the controller has it already.
+    fn set_speed(&mut self, units: i32) -> Result<(), AptError> {
+        if self.speed_set != Some(units) {
+            let params = VelocityParams {
+                min_velocity: 0,
+                acceleration: self.units.acceleration(self.limits.acceleration_mm_s2),
+                max_velocity: units,
+            };
+            self.send(Command::SetVelocity(CHANNEL, params))?;
+            self.speed_set = Some(units);
+        }
+        Ok(())
     }
 
     /// Stops the motor. A stop is never refused, whatever the driver

@@ -46,11 +46,11 @@ pub fn run(config: &AgentConfig) -> anyhow::Result<()> {
         "y_serial": info[1].serial,
     });
     println!("{line}");
-    for (field, (configured, found)) in ["x_serial", "y_serial"].into_iter().zip(
-        [config.stages.x_serial, config.stages.y_serial]
-            .into_iter()
-            .zip(&info),
-    ) {
+    let serials = [
+        ("x_serial", config.stages.x_serial, &info[0]),
+        ("y_serial", config.stages.y_serial, &info[1]),
+    ];
+    for (field, configured, found) in serials {
         if configured.is_none() {
             tracing::warn!(
                 "stages.{field} is not set: add `{field} = {}` under [stages] so that swapped \

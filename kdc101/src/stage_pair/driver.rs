@@ -212,16 +212,26 @@ impl<P: Read + Write> StagePair<P> {
             .unwrap_or_else(|_| unreachable!("two stages")))
     }
 
+    /// [`Self::each`] for what moves the stages: on an error, both motors
+    /// are stopped at once, whatever their drivers managed.
+    fn each_or_stop<T>(
+        &mut self,
+        f: impl FnMut(usize, &mut Axis<SharedPort<P>>) -> Result<T, AptError>,
+    ) -> Result<[T; 2], StagesError> {
+        let result = self.each(f);
+        if result.is_err() {
+            let _ = self.stopper.stop_now();
+        }
+        result
+    }
+
     /// Homes both stages, one after the other, and parks each in the
     /// middle of its soft limits; where they parked (X, Y), mm. The trap's
     /// world origin moves there.
     pub fn home(&mut self) -> Result<[f64; 2], StagesError> {
-        let parked = self.each(|_, stage| stage.home());
-        if parked.is_err() {
-            let _ = self.stopper.stop_now();
-        }
+        let parked = self.each_or_stop(|_, stage| stage.home())?;
         self.origin_mm = self.position_mm()?;
-        parked
+        Ok(parked)
     }
 
     /// Where the carriages are (X, Y), mm.
@@ -258,20 +268,12 @@ impl<P: Read + Write> StagePair<P> {
     /// motors are stopped.
     pub fn set_velocity_px(&mut self, px_per_s: [f64; 2]) -> Result<[Commanded; 2], StagesError> {
         let mm_s = self.calibration.mm(px_per_s);
-        let result = self.each(|axis, stage| stage.set_velocity(mm_s[axis]));
-        if result.is_err() {
-            let _ = self.stopper.stop_now();
-        }
-        result
+        self.each_or_stop(|axis, stage| stage.set_velocity(mm_s[axis]))
     }
 
     /// Stops both motors.
     pub fn stop(&mut self, mode: StopMode) -> Result<(), StagesError> {
-        let result = self.each(|_, stage| stage.stop(mode)).map(|_| ());
-        if result.is_err() {
-            let _ = self.stopper.stop_now();
-        }
-        result
+        self.each_or_stop(|_, stage| stage.stop(mode)).map(|_| ())
     }
 
     /// A handle that stops both motors from any thread.
