@@ -35,6 +35,10 @@ pub struct TrainingStatus {
     /// Updates that diverged and were rolled back since this process
     /// started.
     pub diverged_updates: u64,
+    /// Checkpoints that could not be written since this process started.
+    pub checkpoint_failures: u64,
+    /// Snapshots that could not be published since this process started.
+    pub snapshot_failures: u64,
 }
 
 /// One batch of an actor's steps, decoded at the service edge.
@@ -306,13 +310,16 @@ pub struct LearnerState {
     paused: AtomicBool,
     /// An operator asked for a checkpoint now.
     checkpoint_wanted: AtomicBool,
-    /// The newest checkpoint written, announced to whoever waits for one.
-    checkpoints: tokio::sync::watch::Sender<Option<std::path::PathBuf>>,
+    /// The newest checkpoint attempt, announced to whoever waits for one.
+    checkpoints: tokio::sync::watch::Sender<Option<CheckpointOutcome>>,
     timings: Timings,
     /// Labels each arriving observation with its action, for the actor to
     /// imitate (`td3.imitation`).
     guide: Option<Planner>,
 }
+
+/// A checkpoint attempt: the file written, or why none could be.
+pub type CheckpointOutcome = Result<std::path::PathBuf, String>;
 
 /// Latency histograms, exposed as Prometheus metrics.
 #[derive(Debug)]
@@ -576,8 +583,9 @@ impl LearnerState {
         self.paused.load(Ordering::SeqCst)
     }
 
-    /// Asks the trainer for a checkpoint now; the receiver sees it written.
-    pub fn request_checkpoint(&self) -> tokio::sync::watch::Receiver<Option<std::path::PathBuf>> {
+    /// Asks the trainer for a checkpoint now; the receiver sees it written,
+    /// or why it could not be.
+    pub fn request_checkpoint(&self) -> tokio::sync::watch::Receiver<Option<CheckpointOutcome>> {
         let mut written = self.checkpoints.subscribe();
         written.mark_unchanged();
         self.checkpoint_wanted.store(true, Ordering::SeqCst);
@@ -591,7 +599,12 @@ impl LearnerState {
 
     /// Announces a written checkpoint.
     pub fn checkpoint_written(&self, path: std::path::PathBuf) {
-        self.checkpoints.send_replace(Some(path));
+        self.checkpoints.send_replace(Some(Ok(path)));
+    }
+
+    /// Announces a checkpoint that could not be written, and why.
+    pub fn checkpoint_failed(&self, reason: String) {
+        self.checkpoints.send_replace(Some(Err(reason)));
     }
 
     /// Whether [`Self::stop`] was called.

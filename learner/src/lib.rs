@@ -20,6 +20,7 @@ pub mod minibatch;
 pub mod prometheus_metrics;
 pub mod replay;
 pub mod run_dir;
+pub mod run_lock;
 pub mod run_log;
 pub mod serve;
 pub mod service;

@@ -44,6 +44,16 @@ fn samples(s: &LearnerStatus) -> Vec<MetricSample> {
             s.training.diverged_updates,
         ),
         MetricSample::counter(
+            "checkpoint_failures",
+            "Checkpoints that could not be written (a full disk, say); the learner goes on and retries.",
+            s.training.checkpoint_failures,
+        ),
+        MetricSample::counter(
+            "snapshot_failures",
+            "Snapshots that could not be published; the learner goes on.",
+            s.training.snapshot_failures,
+        ),
+        MetricSample::counter(
             "duplicate_batches",
             "Step batches dropped as already stored.",
             s.duplicate_batches,

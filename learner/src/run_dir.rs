@@ -25,6 +25,12 @@ impl RunDir {
         self.0.join("config.toml")
     }
 
+    /// `learner.lock`: locked by the learner serving the run, and naming
+    /// its process id.
+    pub fn lock(&self) -> PathBuf {
+        self.0.join("learner.lock")
+    }
+
     /// `metrics.jsonl`: the run log, one JSON object per line.
     pub fn run_log(&self) -> PathBuf {
         self.0.join("metrics.jsonl")
@@ -81,6 +87,7 @@ mod tests {
         let run = RunDir::new("runs/quick-1");
         for path in [
             run.config(),
+            run.lock(),
             run.run_log(),
             run.snapshots(),
             run.checkpoints(),

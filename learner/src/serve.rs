@@ -7,12 +7,13 @@
 
 use crate::checkpoint::{Checkpoints, Loaded};
 use crate::config::LearnerFile;
-use crate::durable_write::write_bytes_atomic;
+use crate::durable_write::{remove_leftovers, write_bytes_atomic};
 use crate::learner_state::LearnerState;
 use crate::limiter::{Limiter, SharedLimiter};
 use crate::prometheus_metrics::prometheus;
 use crate::replay::Replay;
 use crate::run_dir::RunDir;
+use crate::run_lock::RunLock;
 use crate::run_log::RunLog;
 use crate::service::LearnerService;
 use crate::snapshots::Snapshots;
@@ -51,6 +52,14 @@ pub fn serve(file: LearnerFile, start: Start, security: &Security) -> anyhow::Re
     let run_dir = &RunDir::new(&config.run_dir);
     std::fs::create_dir_all(run_dir.path())
         .with_context(|| format!("cannot create run directory {}", run_dir.path().display()))?;
+    let _lock = RunLock::acquire(run_dir)?;
+    for dir in [run_dir.path(), &run_dir.checkpoints(), &run_dir.snapshots()] {
+        let removed =
+            remove_leftovers(dir).with_context(|| format!("cannot clean {}", dir.display()))?;
+        for path in removed {
+            tracing::info!(path = %path.display(), "removed a temporary file an interrupted write left");
+        }
+    }
     let checkpoints = Checkpoints::open(&run_dir.checkpoints(), config.checkpoints.keep)?;
     let resume = match start {
         Start::Fresh => false,

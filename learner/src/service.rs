@@ -12,9 +12,11 @@ use tonic::{Code, Request, Response, Status, Streaming};
 use tweezer_proto::pb;
 use tweezer_proto::pb::learner_server::{Learner, LearnerServer};
 
-/// Largest `data` of one snapshot chunk: 1 MiB, well inside gRPC's default
-/// 4 MiB message limit.
-pub const CHUNK_BYTES: usize = 1 << 20;
+/// Largest `data` of one snapshot chunk, 64 KiB: also about what a
+/// GetSnapshot stream whose client reads nothing holds (the chunk waiting
+/// for its flow-control window), so that the streams a connection may open
+/// ([`tweezer_rpc::MAX_CONCURRENT_STREAMS`]) hold a few MiB at most.
+pub const CHUNK_BYTES: usize = 64 << 10;
 
 /// The `Learner` service over the shared state.
 #[derive(Debug, Clone)]
@@ -265,10 +267,18 @@ impl Learner for LearnerService {
             .await
             .map_err(|_| Status::deadline_exceeded("no checkpoint was written within two minutes"))?
             .map_err(|_| Status::unavailable("the learner is shutting down"))?;
-        let path = written.borrow().clone().unwrap_or_default();
-        Ok(Response::new(pb::CheckpointReply {
-            path: path.display().to_string(),
-        }))
+        let outcome = written.borrow().clone();
+        match outcome {
+            Some(Ok(path)) => Ok(Response::new(pb::CheckpointReply {
+                path: path.display().to_string(),
+            })),
+            Some(Err(reason)) => Err(Status::resource_exhausted(format!(
+                "the checkpoint could not be written: {reason}. The learner goes on training and retries; the last good checkpoint is kept"
+            ))),
+            None => Err(Status::internal(
+                "the trainer answered without a checkpoint",
+            )),
+        }
     }
 }
 

@@ -92,6 +92,9 @@ pub struct Snapshots {
     dir: PathBuf,
     keep: usize,
     kept: VecDeque<u64>,
+    /// The highest version written or found on disk: a version number
+    /// names one set of weights for ever, so numbering goes on above it.
+    highest: u64,
     latest: Option<Arc<Published>>,
     best: Option<(Arc<Published>, f64)>,
     /// Versions that kept checkpoints need: never pruned.
@@ -106,18 +109,23 @@ impl Snapshots {
             path: dir.into(),
             source,
         })?;
-        Ok(Self {
+        let mut store = Self {
             dir: dir.into(),
             keep,
             kept: VecDeque::new(),
+            highest: 0,
             latest: None,
             best: None,
             pinned: BTreeSet::new(),
-        })
+        };
+        store.highest = store.on_disk()?.last().copied().unwrap_or(0);
+        Ok(store)
     }
 
     /// The store as a checkpoint left it, its latest and best files read
-    /// back from `dir`.
+    /// back from `dir`. Versions published after that checkpoint (before
+    /// a crash) stay served and are pruned in their turn: clients may
+    /// hold them, and their numbers are not given out again.
     pub fn restore(
         dir: &Path,
         keep: usize,
@@ -125,6 +133,9 @@ impl Snapshots {
     ) -> Result<Self, SnapshotsError> {
         let mut store = Self::create(dir, keep)?;
         store.kept = state.kept.iter().copied().collect();
+        let latest = state.latest.unwrap_or(0);
+        let later = store.on_disk()?.into_iter().filter(|&v| v > latest);
+        store.kept.extend(later);
         store.latest = state.latest.map(|v| store.read(v)).transpose()?;
         store.best = state
             .best
@@ -144,12 +155,35 @@ impl Snapshots {
 
     /// The version the next snapshot gets.
     pub fn next_version(&self) -> u64 {
-        self.latest.as_ref().map_or(1, |p| p.info.version + 1)
+        let latest = self.latest.as_ref().map_or(0, |p| p.info.version);
+        latest.max(self.highest) + 1
     }
 
     /// The path of version `version`.
     pub fn path(&self, version: u64) -> PathBuf {
         self.dir.join(format!("v{version:06}.safetensors"))
+    }
+
+    /// The versions whose files are in the directory, lowest first.
+    fn on_disk(&self) -> Result<Vec<u64>, SnapshotsError> {
+        let entries = std::fs::read_dir(&self.dir).map_err(|source| SnapshotsError::Io {
+            path: self.dir.clone(),
+            source,
+        })?;
+        let mut versions: Vec<u64> = entries
+            .filter_map(|entry| {
+                let name = entry.ok()?.file_name();
+                let version = name
+                    .to_str()?
+                    .strip_prefix('v')?
+                    .strip_suffix(".safetensors")?;
+                let version: u64 = version.parse().ok()?;
+                // Only the names `path` gives.
+                (self.path(version).file_name() == Some(name.as_os_str())).then_some(version)
+            })
+            .collect();
+        versions.sort_unstable();
+        Ok(versions)
     }
 
     fn read(&self, version: u64) -> Result<Arc<Published>, SnapshotsError> {
@@ -188,6 +222,7 @@ impl Snapshots {
         let published = Arc::new(Published::new(bytes)?);
         let version = published.info.version;
         self.write(&self.path(version), &published.bytes)?;
+        self.highest = self.highest.max(version);
         self.kept.push_back(version);
         self.latest = Some(published.clone());
         let is_best =

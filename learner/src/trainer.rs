@@ -109,6 +109,11 @@ pub fn training(
     )?
 }
 
+/// The wait before a failed checkpoint is tried again, doubling after
+/// each failure up to the last.
+const FIRST_CHECKPOINT_RETRY: Duration = Duration::from_secs(5);
+const LAST_CHECKPOINT_RETRY: Duration = Duration::from_secs(300);
+
 /// TD3 fed from the shared replay.
 struct Trainer<N: Networks> {
     shared: Arc<LearnerState>,
@@ -121,6 +126,9 @@ struct Trainer<N: Networks> {
     sums: Sums,
     mark: RateMark,
     last_checkpoint: Instant,
+    /// After a failed checkpoint (a full disk): when to try again, and
+    /// the wait after the next failure.
+    checkpoint_retry: Option<(Instant, Duration)>,
     /// A diverged update could not be rolled back: the networks are not
     /// finite, and no checkpoint or snapshot is written of them.
     poisoned: bool,
@@ -133,7 +141,7 @@ impl<N: Networks> Training for Trainer<N> {
             .snapshots()
             .is_some_and(|s| s.latest_version() > 0);
         if !has_snapshot {
-            self.publish()?;
+            self.publish_or_report();
         }
         Ok(())
     }
@@ -191,6 +199,7 @@ impl<N: Networks> Trainer<N> {
             checkpoints,
             sums: Sums::default(),
             last_checkpoint: Instant::now(),
+            checkpoint_retry: None,
             poisoned: false,
         })
     }
@@ -200,11 +209,11 @@ impl<N: Networks> Trainer<N> {
         let every_checkpoint = Duration::from_secs_f64(config.checkpoints.every_seconds);
         if self.guard.needs_checkpoint(&self.td3) {
             // Something for a diverged update to roll back to.
-            self.checkpoint()?;
+            self.checkpoint_or_retry();
         }
         while !self.shared.stopping() {
             if self.shared.take_checkpoint_request() {
-                self.checkpoint()?;
+                self.checkpoint_or_retry();
             }
             if self.shared.paused() {
                 std::thread::sleep(Duration::from_millis(20));
@@ -220,13 +229,20 @@ impl<N: Networks> Trainer<N> {
                     self.report();
                 }
                 if updates.is_multiple_of(config.snapshots.every_updates) {
-                    self.publish()?;
+                    self.publish_or_report();
                 }
             } else if self.mark.at.elapsed() >= Duration::from_secs(2) {
                 self.measure_rates();
             }
-            if !every_checkpoint.is_zero() && self.last_checkpoint.elapsed() >= every_checkpoint {
-                self.checkpoint()?;
+            let due = match self.checkpoint_retry {
+                Some((at, _)) => Instant::now() >= at,
+                None => {
+                    !every_checkpoint.is_zero()
+                        && self.last_checkpoint.elapsed() >= every_checkpoint
+                }
+            };
+            if due {
+                self.checkpoint_or_retry();
             }
         }
         Ok(())
@@ -390,6 +406,38 @@ impl<N: Networks> Trainer<N> {
             "training"
         );
         self.shared.run_log().write("update", line);
+    }
+
+    /// Publishes the current policy; a failure (a full disk) is reported
+    /// and training goes on: the next publication tries again.
+    fn publish_or_report(&mut self) {
+        if let Err(e) = self.publish() {
+            self.shared.training().snapshot_failures += 1;
+            tracing::error!(error = %format!("{e:#}"), "no snapshot published; training goes on and the next one is tried as usual");
+        }
+    }
+
+    /// Writes a checkpoint; a failure (a full disk) is reported (log,
+    /// metric, and to a Checkpoint call waiting for it) and training goes
+    /// on, trying again after a wait that doubles from
+    /// [`FIRST_CHECKPOINT_RETRY`] up to [`LAST_CHECKPOINT_RETRY`]. The
+    /// last good checkpoint stays: a failed write leaves it untouched.
+    fn checkpoint_or_retry(&mut self) {
+        match self.checkpoint() {
+            Ok(_) => self.checkpoint_retry = None,
+            Err(e) => {
+                let reason = format!("{e:#}");
+                let wait = self
+                    .checkpoint_retry
+                    .map_or(FIRST_CHECKPOINT_RETRY, |(_, wait)| {
+                        (wait * 2).min(LAST_CHECKPOINT_RETRY)
+                    });
+                self.checkpoint_retry = Some((Instant::now() + wait, wait));
+                self.shared.training().checkpoint_failures += 1;
+                tracing::error!(error = %reason, retry_in = ?wait, "checkpoint failed; training goes on, and the last good checkpoint is kept");
+                self.shared.checkpoint_failed(reason);
+            }
+        }
     }
 
     /// Publishes the current policy as the next snapshot version.

@@ -138,3 +138,29 @@ fn snapshots_a_kept_checkpoint_needs_are_never_pruned() {
     assert_eq!(skipped.len(), 1);
     assert!(skipped[0].to_string().contains("v000007"), "{}", skipped[0]);
 }
+
+#[test]
+fn a_restored_store_never_gives_out_a_version_published_after_its_checkpoint() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut store = Snapshots::create(dir.path(), 10).unwrap();
+    for version in 1..=2 {
+        store.publish(snapshot(version), None).unwrap();
+    }
+    // The checkpoint is taken at v2; v3 and v4 follow, then a crash.
+    let state = store.state();
+    for version in 3..=4 {
+        store.publish(snapshot(version), None).unwrap();
+    }
+    let served = std::fs::read(store.path(4)).unwrap();
+    drop(store);
+
+    let mut store = Snapshots::restore(dir.path(), 10, &state).unwrap();
+    assert_eq!(store.latest_version(), 2);
+    assert_eq!(store.next_version(), 5, "3 and 4 already name weights");
+    assert_eq!(store.get(Selector::Version(4)).unwrap().bytes, served);
+    store.publish(snapshot(5), None).unwrap();
+    assert_eq!(std::fs::read(store.path(4)).unwrap(), served);
+    assert_eq!(store.state().kept, [1, 2, 3, 4, 5]);
+    // A fresh store in a directory that holds snapshots numbers above them.
+    assert_eq!(Snapshots::create(dir.path(), 10).unwrap().next_version(), 6);
+}
