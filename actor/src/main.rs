@@ -204,10 +204,14 @@ fn main() -> anyhow::Result<()> {
             log_json,
             security,
         } => {
-            init_logging(log_json);
             if metrics_listen.is_some() {
                 config.actor.metrics_listen = metrics_listen;
             }
+            // Its metrics listener reloads tokens on SIGHUP.
+            if config.actor.metrics_listen.is_some() {
+                tweezer_process::catch_early_hangups();
+            }
+            init_logging(log_json);
             let security = tweezer_rpc::Security::load(security.as_deref())?;
             let metrics = config
                 .actor

@@ -147,6 +147,9 @@ fn baseline_flag(greedy: bool, planner: bool) -> Option<Baseline> {
 
 fn main() -> anyhow::Result<()> {
     let cli = Cli::parse();
+    if matches!(cli.command, Command::Serve { .. }) {
+        tweezer_process::catch_early_hangups();
+    }
     let mut config = AgentConfig::load(cli.config.as_deref())?;
     match cli.command {
         Command::Config => print!("{}", config.to_toml()),

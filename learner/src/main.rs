@@ -117,6 +117,9 @@ fn with_allocator_options() -> Option<String> {
 fn main() -> anyhow::Result<()> {
     let unset = with_allocator_options();
     let cli = Cli::parse();
+    if matches!(cli.command, Command::Serve { .. }) {
+        tweezer_process::catch_early_hangups();
+    }
     init_logging(cli.log_json);
     if let Some(why) = unset {
         tracing::warn!("{why}; freed memory goes back to the system after mimalloc's 1 s");

@@ -1,6 +1,8 @@
 //! What every process binary of the workspace shares: logging to stderr,
 //! the signals that stop it, and argument parsers.
 
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, Mutex};
 use tracing_subscriber::EnvFilter;
 
 /// Logs to stderr, filtered by `RUST_LOG` (default `info`); JSON lines for
@@ -73,6 +75,42 @@ impl StopSignals {
             "Ctrl-C"
         }
     }
+}
+
+/// The SIGHUP catcher [`catch_early_hangups`] installed, until a reload
+/// watcher takes over.
+static EARLY_HANGUPS: Mutex<Option<(Arc<AtomicBool>, signal_hook::SigId)>> = Mutex::new(None);
+
+/// Catches SIGHUP from now on, for a service that reloads on it: one that
+/// comes before the service watches for it (while it loads a checkpoint,
+/// say) is remembered for [`early_hangup_came`] instead of ending the
+/// process, as the default action would (`systemctl reload` sends SIGHUP
+/// whenever it is asked). Call it first thing in a service's `main`.
+pub fn catch_early_hangups() {
+    let came = Arc::new(AtomicBool::new(false));
+    match signal_hook::flag::register(signal_hook::consts::SIGHUP, came.clone()) {
+        Ok(id) => {
+            *EARLY_HANGUPS
+                .lock()
+                .unwrap_or_else(|poisoned| poisoned.into_inner()) = Some((came, id));
+        }
+        Err(e) => {
+            eprintln!("cannot catch SIGHUP early ({e}): one sent during start-up ends the process")
+        }
+    }
+}
+
+/// Whether a SIGHUP came since [`catch_early_hangups`]; stops catching
+/// them early. Call it once the process watches for SIGHUP itself.
+pub fn early_hangup_came() -> bool {
+    let caught = EARLY_HANGUPS
+        .lock()
+        .unwrap_or_else(|poisoned| poisoned.into_inner())
+        .take();
+    caught.is_some_and(|(came, id)| {
+        signal_hook::low_level::unregister(id);
+        came.load(Ordering::SeqCst)
+    })
 }
 
 /// Parses "X,Y" into two finite numbers (a clap value parser).

@@ -1,21 +1,27 @@
 //! Every listener's front door. Accepted TCP connections get a bounded TLS
 //! handshake (in plaintext: a bound on the first bytes), an idle timeout,
-//! and caps on how many may be handshaking and how many may be open. A cap
-//! never turns a newcomer away: the connection that matters least makes
-//! room instead — the oldest one still handshaking, or, among open ones,
-//! the one silent the longest. So silent or slow peers can never lock a
-//! client that completes its handshake out (an operator's EmergencyStop
-//! included), and accept errors (descriptors exhausted) back off instead of
-//! spinning.
+//! and caps on how many may be handshaking and how many may be open. When a
+//! cap is reached, the connection that matters least makes room:
+//! - among handshakes, the oldest that has not sent a byte, else the
+//!   oldest: a flood of silent connects, however fast, never displaces a
+//!   client that has sent its ClientHello (an operator's EmergencyStop);
+//! - among open connections, the one silent the longest that has made no
+//!   authenticated call. Authenticated connections are never displaced by
+//!   newcomers: when they alone fill the cap, the newcomer is closed.
+//!
+//! So silent or slow peers can only displace one another, and accept
+//! errors (descriptors exhausted) back off instead of spinning.
 
 use crate::server::current;
 use serde::{Deserialize, Serialize};
 use std::collections::{BTreeMap, HashMap};
 use std::future::Future;
 use std::io;
-use std::net::SocketAddr;
+use std::mem::MaybeUninit;
+use std::net::{IpAddr, SocketAddr};
+use std::os::fd::{AsFd, OwnedFd};
 use std::pin::Pin;
-use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, MutexGuard, RwLock};
 use std::task::{Context, Poll, ready};
 use std::time::{Duration, Instant};
@@ -52,7 +58,10 @@ impl Default for ListenerLimits {
             handshake_timeout_s: 10.0,
             idle_timeout_s: 300.0,
             max_connections: 512,
-            max_handshakes: 64,
+            // A silent connect costs a task and two descriptors; more room
+            // gives a client longer to send its ClientHello under a flood
+            // from its own address (10 ms at 24,000 connects/s).
+            max_handshakes: 256,
         }
     }
 }
@@ -91,9 +100,9 @@ impl ListenerLimits {
     }
 
     /// File descriptors a process with `listeners` listeners may hold for
-    /// connections at most.
+    /// connections at most (a handshaking one holds two: see `Handshake`).
     pub fn descriptors(&self, listeners: usize) -> u64 {
-        ((self.max_connections + self.max_handshakes) * listeners) as u64
+        ((self.max_connections + 2 * self.max_handshakes) * listeners) as u64
     }
 
     fn handshake(&self) -> Duration {
@@ -114,14 +123,93 @@ pub(crate) type SharedTls = Arc<RwLock<Arc<rustls::ServerConfig>>>;
 #[derive(Default)]
 struct Table {
     next: u64,
-    handshaking: BTreeMap<u64, oneshot::Sender<()>>,
+    handshaking: BTreeMap<u64, Handshake>,
     open: HashMap<u64, Open>,
+}
+
+struct Handshake {
+    /// The peer's address: a flood from one source makes room among its
+    /// own connections.
+    source: IpAddr,
+    /// Set once the peer is known to have sent its first bytes (a
+    /// ClientHello).
+    spoke: Arc<AtomicBool>,
+    /// The socket, to look for those bytes when room must be made: they
+    /// may have arrived before the connection's task has run.
+    socket: Option<OwnedFd>,
+    close: oneshot::Sender<()>,
+}
+
+impl Handshake {
+    /// Whether the peer has sent anything yet.
+    fn spoke(&self) -> bool {
+        if self.spoke.load(Ordering::Relaxed) {
+            return true;
+        }
+        // Accepted sockets do not block: an empty one answers WouldBlock.
+        let waiting = self.socket.as_ref().is_some_and(|socket| {
+            matches!(
+                socket2::SockRef::from(socket).peek(&mut [MaybeUninit::uninit()]),
+                Ok(1..)
+            )
+        });
+        if waiting {
+            self.spoke.store(true, Ordering::Relaxed);
+        }
+        waiting
+    }
+}
+
+impl Table {
+    /// The handshake to close when there are too many: among those of the
+    /// source with the most, the oldest silent one, or its oldest.
+    fn least_needed_handshake(&self) -> Option<u64> {
+        let mut counts: HashMap<IpAddr, usize> = HashMap::new();
+        for handshake in self.handshaking.values() {
+            *counts.entry(handshake.source).or_default() += 1;
+        }
+        let (&heaviest, _) = counts.iter().max_by_key(|(_, count)| **count)?;
+        let mut theirs = self
+            .handshaking
+            .iter()
+            .filter(|(_, h)| h.source == heaviest);
+        let oldest = theirs.clone().next().map(|(&id, _)| id);
+        theirs
+            .find(|(_, h)| !h.spoke())
+            .map(|(&id, _)| id)
+            .or(oldest)
+    }
 }
 
 struct Open {
     /// When bytes last arrived, ms since the registry's epoch.
     last_read: Arc<AtomicU64>,
+    /// Set by the first call that presents a valid token.
+    vouched: Arc<AtomicBool>,
     close: oneshot::Sender<()>,
+}
+
+/// An open connection's handles on its entry in the table.
+struct Opened {
+    last_read: Arc<AtomicU64>,
+    vouched: Arc<AtomicBool>,
+    close: oneshot::Receiver<()>,
+}
+
+/// What tonic hands each request about its connection: the addresses, and
+/// a way to give the connection the standing of an authenticated one.
+#[derive(Clone, Debug)]
+pub(crate) struct PeerInfo {
+    pub(crate) tcp: TcpConnectInfo,
+    vouched: Arc<AtomicBool>,
+}
+
+impl PeerInfo {
+    /// A call on this connection presented a valid token: newcomers no
+    /// longer displace it.
+    pub(crate) fn vouch(&self) {
+        self.vouched.store(true, Ordering::Relaxed);
+    }
 }
 
 /// The table behind a lock, and the clock its times count from.
@@ -143,50 +231,80 @@ impl Registry {
         self.epoch.elapsed().as_millis() as u64
     }
 
-    /// A new connection in its handshake, and what tells it to close; the
-    /// oldest handshake closes if there are too many.
-    fn begin(&self) -> (u64, oneshot::Receiver<()>) {
-        let (tx, rx) = oneshot::channel();
+    /// A new connection from `source` in its handshake, what tells it to
+    /// close, and the flag to set when it speaks. If too many are
+    /// handshaking, one of the source holding the most handshakes closes:
+    /// its oldest silent one, or its oldest if all of them have spoken.
+    fn begin(
+        &self,
+        source: IpAddr,
+        socket: Option<OwnedFd>,
+    ) -> (u64, oneshot::Receiver<()>, Arc<AtomicBool>) {
+        let (close, rx) = oneshot::channel();
+        let spoke = Arc::new(AtomicBool::new(false));
         let mut table = self.lock();
         while table.handshaking.len() >= self.limits.max_handshakes {
-            let Some((_, oldest)) = table.handshaking.pop_first() else {
+            let Some(id) = table.least_needed_handshake() else {
                 break;
             };
-            let _ = oldest.send(());
+            if let Some(handshake) = table.handshaking.remove(&id) {
+                let _ = handshake.close.send(());
+            }
         }
         let id = table.next;
         table.next += 1;
-        table.handshaking.insert(id, tx);
-        (id, rx)
+        let handshake = Handshake {
+            source,
+            spoke: spoke.clone(),
+            socket,
+            close,
+        };
+        table.handshaking.insert(id, handshake);
+        (id, rx, spoke)
     }
 
-    /// Connection `id` finished its handshake; the connection silent the
-    /// longest closes if too many are open. `None` if `id` was closed
-    /// meanwhile.
-    fn open(&self, id: u64) -> Option<(Arc<AtomicU64>, oneshot::Receiver<()>)> {
+    /// Connection `id` finished its handshake. If too many are open, the
+    /// one silent the longest among those without an authenticated call
+    /// closes; if every open one has made one, `id` itself is refused.
+    /// `None` if `id` is refused or was closed meanwhile.
+    fn open(&self, id: u64) -> Option<Opened> {
         let mut table = self.lock();
         table.handshaking.remove(&id)?;
         while table.open.len() >= self.limits.max_connections {
             let quietest = table
                 .open
                 .iter()
+                .filter(|(_, open)| !open.vouched.load(Ordering::Relaxed))
                 .min_by_key(|(_, open)| open.last_read.load(Ordering::Relaxed))
                 .map(|(&id, _)| id);
-            let Some(quietest) = quietest else { break };
+            let Some(quietest) = quietest else {
+                tracing::warn!(
+                    listener = self.what,
+                    max_connections = self.limits.max_connections,
+                    "refused a connection: authenticated clients hold every connection ([listener] max_connections)"
+                );
+                return None;
+            };
             if let Some(open) = table.open.remove(&quietest) {
                 let _ = open.close.send(());
             }
         }
         let (close, rx) = oneshot::channel();
         let last_read = Arc::new(AtomicU64::new(self.now_ms()));
+        let vouched = Arc::new(AtomicBool::new(false));
         table.open.insert(
             id,
             Open {
                 last_read: last_read.clone(),
+                vouched: vouched.clone(),
                 close,
             },
         );
-        Some((last_read, rx))
+        Some(Opened {
+            last_read,
+            vouched,
+            close: rx,
+        })
     }
 
     fn end(&self, id: u64) {
@@ -246,7 +364,8 @@ async fn accept_loop(
             }
         };
         let _ = stream.set_nodelay(true);
-        let (id, close) = registry.begin();
+        let socket = stream.as_fd().try_clone_to_owned().ok();
+        let (id, close, spoke) = registry.begin(peer.ip(), socket);
         let acceptor = tls.as_deref().map(|tls| TlsAcceptor::from(current(tls)));
         let (registry, tx) = (registry.clone(), tx.clone());
         tokio::spawn(async move {
@@ -254,7 +373,7 @@ async fn accept_loop(
             let limit = registry.limits.handshake();
             let shaken = tokio::select! {
                 _ = close => Err("closed to make room for newer connections".to_string()),
-                shaken = tokio::time::timeout(limit, handshake(stream, acceptor)) => match shaken {
+                shaken = tokio::time::timeout(limit, handshake(stream, acceptor, &spoke)) => match shaken {
                     Ok(Ok(io)) => Ok(io),
                     Ok(Err(e)) => Err(e.to_string()),
                     Err(_) => Err(format!("no handshake within {limit:?}")),
@@ -267,12 +386,18 @@ async fn accept_loop(
                     return;
                 }
             };
-            let Some((last_read, close)) = registry.open(id) else {
+            let Some(Opened {
+                last_read,
+                vouched,
+                close,
+            }) = registry.open(id)
+            else {
                 return;
             };
             let connection = Connection {
                 io,
                 peer,
+                vouched,
                 close: Some(close),
                 silence: Box::pin(tokio::time::sleep(registry.limits.handshake())),
                 last_read_at: Instant::now(),
@@ -285,19 +410,23 @@ async fn accept_loop(
     }
 }
 
-/// The TLS handshake, or in plaintext the wait for the first bytes.
-async fn handshake(stream: TcpStream, tls: Option<TlsAcceptor>) -> io::Result<Io> {
+/// The wait for the first bytes (which sets `spoke`), then the TLS
+/// handshake unless plaintext.
+async fn handshake(
+    stream: TcpStream,
+    tls: Option<TlsAcceptor>,
+    spoke: &AtomicBool,
+) -> io::Result<Io> {
+    if stream.peek(&mut [0u8; 1]).await? == 0 {
+        return Err(io::Error::new(
+            io::ErrorKind::UnexpectedEof,
+            "closed before sending anything",
+        ));
+    }
+    spoke.store(true, Ordering::Relaxed);
     match tls {
         Some(acceptor) => Ok(Io::Tls(Box::new(acceptor.accept(stream).await?))),
-        None => {
-            if stream.peek(&mut [0u8; 1]).await? == 0 {
-                return Err(io::Error::new(
-                    io::ErrorKind::UnexpectedEof,
-                    "closed before sending anything",
-                ));
-            }
-            Ok(Io::Plain(stream))
-        }
+        None => Ok(Io::Plain(stream)),
     }
 }
 
@@ -329,6 +458,7 @@ impl Io {
 pub(crate) struct Connection {
     io: Io,
     peer: SocketAddr,
+    vouched: Arc<AtomicBool>,
     /// Fires when the connection is closed to make room; `None` once it has.
     close: Option<oneshot::Receiver<()>>,
     silence: Pin<Box<Sleep>>,
@@ -344,6 +474,17 @@ impl Connection {
     /// The peer's address.
     pub(crate) fn peer(&self) -> SocketAddr {
         self.peer
+    }
+
+    /// The connection's address and standing, for its requests.
+    pub(crate) fn info(&self) -> PeerInfo {
+        PeerInfo {
+            tcp: TcpConnectInfo {
+                local_addr: self.io.tcp().local_addr().ok(),
+                remote_addr: Some(self.peer),
+            },
+            vouched: self.vouched.clone(),
+        }
     }
 
     fn registry(&self) -> &Registry {
@@ -431,13 +572,10 @@ impl AsyncWrite for Connection {
 }
 
 impl Connected for Connection {
-    type ConnectInfo = TcpConnectInfo;
+    type ConnectInfo = PeerInfo;
 
-    fn connect_info(&self) -> TcpConnectInfo {
-        TcpConnectInfo {
-            local_addr: self.io.tcp().local_addr().ok(),
-            remote_addr: Some(self.peer),
-        }
+    fn connect_info(&self) -> PeerInfo {
+        self.info()
     }
 }
 
@@ -482,30 +620,72 @@ mod tests {
         }
     }
 
+    const HERE: IpAddr = IpAddr::V4(std::net::Ipv4Addr::LOCALHOST);
+
     #[test]
-    fn the_oldest_handshake_makes_room() {
-        let registry = registry(10, 2);
-        let (a, mut a_close) = registry.begin();
-        let (b, mut b_close) = registry.begin();
-        let (_c, mut c_close) = registry.begin();
-        assert!(a_close.try_recv().is_ok(), "the oldest closes");
-        assert!(b_close.try_recv().is_err() && c_close.try_recv().is_err());
-        assert!(registry.open(a).is_none(), "a closed handshake cannot open");
-        assert!(registry.open(b).is_some());
+    fn a_flood_from_one_source_makes_room_among_its_own_handshakes() {
+        let registry = registry(10, 3);
+        let flood: IpAddr = [10, 0, 0, 9].into();
+        let (_, mut operator_close, _) = registry.begin(HERE, None);
+        let mut flooding: Vec<_> = (0..50).map(|_| registry.begin(flood, None).1).collect();
+        assert!(
+            operator_close.try_recv().is_err(),
+            "the oldest, silent, but alone from its source"
+        );
+        let open = flooding
+            .iter_mut()
+            .map(|close| close.try_recv().is_err())
+            .filter(|&open| open)
+            .count();
+        assert_eq!(open, 2, "the flood's newest two remain");
     }
 
     #[test]
-    fn the_longest_silent_open_connection_makes_room() {
+    fn the_oldest_silent_handshake_makes_room() {
+        let registry = registry(10, 2);
+        let (a, mut a_close, a_spoke) = registry.begin(HERE, None);
+        let (b, mut b_close, _) = registry.begin(HERE, None);
+        a_spoke.store(true, Ordering::Relaxed);
+        let (c, mut c_close, _) = registry.begin(HERE, None);
+        assert!(b_close.try_recv().is_ok(), "the oldest silent one closes");
+        assert!(a_close.try_recv().is_err() && c_close.try_recv().is_err());
+        assert!(registry.open(b).is_none(), "a closed handshake cannot open");
+        assert!(registry.open(a).is_some());
+        let (_d, _, d_spoke) = registry.begin(HERE, None);
+        d_spoke.store(true, Ordering::Relaxed);
+        registry
+            .lock()
+            .handshaking
+            .get(&c)
+            .unwrap()
+            .spoke
+            .store(true, Ordering::Relaxed);
+        let _e = registry.begin(HERE, None);
+        assert!(c_close.try_recv().is_ok(), "all spoke: the oldest closes");
+    }
+
+    #[test]
+    fn the_longest_silent_unauthenticated_connection_makes_room() {
         let registry = registry(2, 10);
-        let ids: Vec<_> = (0..3).map(|_| registry.begin().0).collect();
-        let (quiet, mut quiet_close) = registry.open(ids[0]).unwrap();
-        let (busy, mut busy_close) = registry.open(ids[1]).unwrap();
-        quiet.store(1, Ordering::Relaxed);
-        busy.store(5, Ordering::Relaxed);
-        let (_, mut new_close) = registry.open(ids[2]).unwrap();
-        assert!(quiet_close.try_recv().is_ok());
-        assert!(busy_close.try_recv().is_err() && new_close.try_recv().is_err());
-        registry.end(ids[1]);
+        let ids: Vec<_> = (0..4).map(|_| registry.begin(HERE, None).0).collect();
+        let mut quiet = registry.open(ids[0]).unwrap();
+        let mut busy = registry.open(ids[1]).unwrap();
+        quiet.last_read.store(1, Ordering::Relaxed);
+        busy.last_read.store(5, Ordering::Relaxed);
+        quiet.vouched.store(true, Ordering::Relaxed);
+        let mut new = registry.open(ids[2]).unwrap();
+        assert!(
+            busy.close.try_recv().is_ok(),
+            "the quieter one is authenticated"
+        );
+        assert!(quiet.close.try_recv().is_err() && new.close.try_recv().is_err());
+        new.vouched.store(true, Ordering::Relaxed);
+        assert!(
+            registry.open(ids[3]).is_none(),
+            "authenticated connections fill the cap: the newcomer is refused"
+        );
+        assert!(quiet.close.try_recv().is_err() && new.close.try_recv().is_err());
+        registry.end(ids[0]);
         assert_eq!(registry.lock().open.len(), 1);
     }
 

@@ -4,10 +4,11 @@
 //! may read), with the same connection limits. Prometheus scrapes it with
 //! `authorization` and `tls_config`.
 
+use crate::authorize::SharedTokens;
 use crate::authorize::{Refusal, presented};
 use crate::guarded_listener::{self, Connection};
 use crate::prometheus::Prometheus;
-use crate::server::{ServerSecurity, SharedTokens, current};
+use crate::server::ServerSecurity;
 use crate::tokens::Tokens;
 use http::{Method, Request, Response, StatusCode, header};
 use http_body_util::Full;
@@ -56,8 +57,12 @@ impl ServerSecurity {
 /// Serves one connection's requests.
 async fn serve_connection(connection: Connection, tokens: SharedTokens, metrics: Arc<Prometheus>) {
     let peer = connection.peer();
+    let info = connection.info();
     let service = service_fn(move |request: Request<Incoming>| {
-        let response = respond(&current(&tokens), &metrics, &request);
+        let response = respond(&tokens.current(), &metrics, &request);
+        if response.status() == StatusCode::OK {
+            info.vouch();
+        }
         async move { Ok::<_, Infallible>(response) }
     });
     let served = http1::Builder::new().serve_connection(TokioIo::new(connection), service);

@@ -170,6 +170,14 @@ impl Security {
         }))
     }
 
+    /// The CA the security file names, if it names one.
+    pub fn ca_pem(&self) -> Result<Option<Vec<u8>>, SecurityError> {
+        match self.file.ca {
+            Some(_) => self.read("ca", &self.file.ca).map(Some),
+            None => Ok(None),
+        }
+    }
+
     /// The PEM a client connects with; None when plaintext.
     pub fn client_pem(&self) -> Result<Option<Pem>, SecurityError> {
         if self.file.plaintext {

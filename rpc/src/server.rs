@@ -2,12 +2,11 @@
 //! reflection, behind TLS (unless the security file says plaintext) and
 //! token checks, with a span per request.
 
-use crate::authorize::AuthLayer;
+use crate::authorize::{AuthLayer, LiveTokens, SharedTokens};
 use crate::guarded_listener::{
-    self, KEEPALIVE_INTERVAL, KEEPALIVE_TIMEOUT, ListenerLimits, SharedTls,
+    self, KEEPALIVE_INTERVAL, KEEPALIVE_TIMEOUT, ListenerLimits, PeerInfo, SharedTls,
 };
 use crate::security::{Pem, Security, SecurityError};
-use crate::tokens::Tokens;
 use anyhow::Context;
 use http::Request;
 use std::convert::Infallible;
@@ -19,11 +18,28 @@ use tonic::body::Body;
 use tonic::server::NamedService;
 use tonic::service::Routes;
 use tonic::transport::Server;
-use tonic::transport::server::TcpConnectInfo;
 use tower::Service;
 
-/// Tokens that a reload may replace; each call checks the current ones.
-pub(crate) type SharedTokens = Arc<RwLock<Arc<Tokens>>>;
+/// Most streams a client may have open at once on one connection: an
+/// actor holds one, a CLI or a snapshot follower a few.
+pub const MAX_CONCURRENT_STREAMS: u32 = 32;
+/// Streams the server may reset for a client's protocol errors on one
+/// connection before it closes it with GOAWAY (ENHANCE_YOUR_CALM). tonic
+/// passes none unless told, which switches h2's own limit off: one
+/// connection could then make the server reset streams without end
+/// ("MadeYouReset", CVE-2025-8671). Well-behaved clients cause none.
+pub const MAX_LOCAL_ERROR_RESETS: usize = 128;
+/// Streams a client may reset before the server has accepted them
+/// ("Rapid Reset", CVE-2023-44487): h2's default, set here on purpose.
+pub const MAX_PENDING_ACCEPT_RESETS: usize = 20;
+/// Largest header list a client may send, bytes.
+pub const MAX_HEADER_LIST_BYTES: u32 = 16 << 10;
+/// Largest frame a client may send: HTTP/2's minimum, 16 KiB.
+pub const MAX_FRAME_BYTES: u32 = 16 << 10;
+/// How far a client may send ahead of what the service has read, per
+/// stream and per connection: the memory one connection's unread
+/// requests can hold.
+pub const RECEIVE_WINDOW_BYTES: u32 = 1 << 20;
 
 /// Puts `value` behind a reloadable lock, for the next reader.
 fn replace<T: ?Sized>(lock: &RwLock<Arc<T>>, value: Arc<T>) {
@@ -70,7 +86,7 @@ impl ServerSecurity {
         })?;
         // Two listeners (gRPC and metrics) at most per process.
         guarded_listener::raise_open_files_limit(limits.descriptors(2));
-        let tokens = Arc::new(security.tokens()?);
+        let tokens = security.tokens()?;
         let (grpc_tls, metrics_tls) = match tls_configs(security)? {
             None => {
                 tracing::warn!(
@@ -94,7 +110,7 @@ impl ServerSecurity {
             security: Arc::new(security.clone()),
             grpc_tls,
             metrics_tls,
-            tokens: Arc::new(RwLock::new(tokens)),
+            tokens: LiveTokens::new(tokens),
             limits,
             watching_sighup: Arc::default(),
         })
@@ -104,16 +120,17 @@ impl ServerSecurity {
     /// load, uses them for new calls and handshakes; otherwise keeps the
     /// current ones and says why.
     pub fn reload(&self) -> Result<(), SecurityError> {
-        let tokens = Arc::new(self.security.tokens()?);
+        let tokens = self.security.tokens()?;
         let configs = tls_configs(&self.security)?;
-        replace(&self.tokens, tokens.clone());
+        let count = tokens.len();
+        self.tokens.replace(tokens);
         if let (Some((grpc, metrics)), Some(grpc_tls), Some(metrics_tls)) =
             (configs, &self.grpc_tls, &self.metrics_tls)
         {
             replace(grpc_tls, grpc);
             replace(metrics_tls, metrics);
         }
-        tracing::info!(tokens = tokens.len(), "reloaded tokens and certificates");
+        tracing::info!(tokens = count, "reloaded tokens and certificates");
         Ok(())
     }
 
@@ -132,7 +149,14 @@ impl ServerSecurity {
             }
         };
         let this = self.clone();
+        let early = tweezer_process::early_hangup_came();
         tokio::spawn(async move {
+            if early {
+                tracing::info!("a SIGHUP came during start-up: reloading now");
+                if let Err(e) = this.reload() {
+                    tracing::error!(error = %e, "SIGHUP: reload failed; the previous tokens and certificates stay in use");
+                }
+            }
             while hangups.recv().await.is_some() {
                 if let Err(e) = this.reload() {
                     tracing::error!(error = %e, "SIGHUP: reload failed; the previous tokens and certificates stay in use");
@@ -182,6 +206,13 @@ impl ServerSecurity {
         Server::builder()
             .http2_keepalive_interval(Some(KEEPALIVE_INTERVAL))
             .http2_keepalive_timeout(Some(KEEPALIVE_TIMEOUT))
+            .max_concurrent_streams(MAX_CONCURRENT_STREAMS)
+            .http2_max_local_error_reset_streams(Some(MAX_LOCAL_ERROR_RESETS))
+            .http2_max_pending_accept_reset_streams(Some(MAX_PENDING_ACCEPT_RESETS))
+            .http2_max_header_list_size(MAX_HEADER_LIST_BYTES)
+            .max_frame_size(MAX_FRAME_BYTES)
+            .initial_stream_window_size(RECEIVE_WINDOW_BYTES)
+            .initial_connection_window_size(RECEIVE_WINDOW_BYTES)
             .trace_fn(request_span)
             .layer(AuthLayer::new(self.tokens.clone()))
             .add_routes(routes)
@@ -200,6 +231,15 @@ fn tls_configs(security: &Security) -> Result<Option<TlsPair>, SecurityError> {
     let Some(pem) = security.server_pem()? else {
         return Ok(None);
     };
+    // A certificate from another CA would lock out every client that
+    // trusts the deployment's: refused at start and on reload alike.
+    if let (Some(ca), Some((cert, _))) = (security.ca_pem()?, &pem.identity) {
+        crate::certs::check_issued_by(cert, &ca).map_err(|reason| SecurityError::Field {
+            file: security.source.clone(),
+            field: "cert",
+            reason,
+        })?;
+    }
     let config = |alpn: &[u8]| {
         server_tls(&pem, alpn)
             .map(Arc::new)
@@ -260,8 +300,8 @@ fn server_tls(pem: &Pem, alpn: &[u8]) -> Result<rustls::ServerConfig, String> {
 fn request_span(request: &http::Request<()>) -> tracing::Span {
     let peer = request
         .extensions()
-        .get::<TcpConnectInfo>()
-        .and_then(TcpConnectInfo::remote_addr);
+        .get::<PeerInfo>()
+        .and_then(|info| info.tcp.remote_addr());
     tracing::info_span!(
         "rpc",
         method = request.uri().path(),

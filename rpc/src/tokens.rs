@@ -239,6 +239,18 @@ impl Tokens {
         self.entries.is_empty()
     }
 
+    /// Whether `entry`'s token is still listed with a role that grants
+    /// `needed` (its digest compared in constant time).
+    pub(crate) fn grants(&self, entry: &TokenEntry, needed: Role) -> bool {
+        let mut granted = false;
+        for listed in &self.entries {
+            if bool::from(listed.digest.ct_eq(&entry.digest)) {
+                granted = listed.role.grants(needed);
+            }
+        }
+        granted
+    }
+
     /// The entry `presented` matches, if any. Every entry's digest is
     /// compared, in constant time, whatever matches.
     pub fn verify(&self, presented: &str) -> Option<&TokenEntry> {
@@ -283,12 +295,17 @@ pub enum TokenError {
     Random(String),
 }
 
-fn check_name(name: &str) -> Result<(), TokenError> {
-    let ok = (1..=64).contains(&name.len())
+/// Whether `name` is 1 to 64 letters, digits, `.`, `_` or `-`: a name for
+/// logs and tokens files, and a plain file name (no `/`).
+pub(crate) fn is_plain_name(name: &str) -> bool {
+    (1..=64).contains(&name.len())
         && name
             .bytes()
-            .all(|b| b.is_ascii_alphanumeric() || b"._-".contains(&b));
-    if ok {
+            .all(|b| b.is_ascii_alphanumeric() || b"._-".contains(&b))
+}
+
+fn check_name(name: &str) -> Result<(), TokenError> {
+    if is_plain_name(name) {
         Ok(())
     } else {
         Err(TokenError::Name(name.into()))

@@ -337,7 +337,16 @@ pub fn start_agent(args: &[&str], log: Option<&Path>) -> (Child, String) {
 /// [`AGENT_CONTROL`]'s.
 pub fn start_configured_agent(config: &str, args: &[&str], log: Option<&Path>) -> (Child, String) {
     let security = credentials().file("server");
-    let mut all = vec![
+    let mut all = agent_serve_args(config, &security);
+    all.extend_from_slice(args);
+    start_service("hardware-agent", &all, log)
+}
+
+/// The arguments of `hardware-agent serve --twin --greedy` on a free
+/// loopback port with the config file `config` and the security file
+/// `security`.
+pub fn agent_serve_args<'a>(config: &'a str, security: &'a str) -> Vec<&'a str> {
+    vec![
         "--config",
         config,
         "serve",
@@ -346,10 +355,30 @@ pub fn start_configured_agent(config: &str, args: &[&str], log: Option<&Path>) -
         "--listen",
         "127.0.0.1:0",
         "--security",
-        &security,
+        security,
+    ]
+}
+
+/// Starts `learner serve` with the security file `security`, the config
+/// file `config` and the run directory `run_dir`, its standard error to
+/// `log` if given; returns it, once it listens, and its address.
+pub fn start_learner_with(
+    security: &str,
+    config: &str,
+    run_dir: &Path,
+    log: Option<&Path>,
+) -> (Child, String) {
+    let run_dir = run_dir.to_str().expect("a UTF-8 path");
+    let args = [
+        "serve",
+        "--security",
+        security,
+        "--config",
+        config,
+        "--run-dir",
+        run_dir,
     ];
-    all.extend_from_slice(args);
-    start_service("hardware-agent", &all, log)
+    start_service("learner", &args, log)
 }
 
 /// A channel to the service at `addr` (`host:port`) as the security file
@@ -397,7 +426,18 @@ pub fn start_service_with_open_files(bin: &str, args: &[&str], limit: u64) -> (C
 }
 
 /// [`start_service`] for a `command` that runs binary `bin`.
-pub fn spawn_service(bin: &str, mut command: Command, log: Option<&Path>) -> (Child, String) {
+pub fn spawn_service(bin: &str, command: Command, log: Option<&Path>) -> (Child, String) {
+    spawn_service_then(bin, command, log, |_| {})
+}
+
+/// [`spawn_service`], with `then` called on the process as soon as it is
+/// started, before it listens (to signal it during start-up, say).
+pub fn spawn_service_then(
+    bin: &str,
+    mut command: Command,
+    log: Option<&Path>,
+    then: impl FnOnce(&Child),
+) -> (Child, String) {
     let stderr = match log {
         Some(path) => Stdio::from(
             std::fs::File::create(path).unwrap_or_else(|e| panic!("cannot create the log: {e}")),
@@ -409,6 +449,7 @@ pub fn spawn_service(bin: &str, mut command: Command, log: Option<&Path>) -> (Ch
         .stderr(stderr)
         .spawn()
         .unwrap_or_else(|e| panic!("cannot start {bin}: {e}"));
+    then(&child);
     let stdout = child.stdout.take().expect("stdout is piped");
     let (sender, first) = std::sync::mpsc::channel();
     std::thread::spawn(move || {

@@ -12,8 +12,8 @@ use tweezer_proto::pb::learner_client::LearnerClient;
 use tweezer_rpc::access::{Access, RULES, access};
 use tweezer_rpc::{AuthChannel, ClientSecurity, Role, Security};
 use tweezer_system_tests::{
-    Running, TINY_ENV, connect, credentials, learner_status, run, start_agent, start_service,
-    stderr_of_failure, stdout_of, write,
+    Running, TINY_ENV, connect, credentials, learner_status, run, start_agent, stderr_of_failure,
+    stdout_of, write,
 };
 
 /// Who calls: no token, a token no service lists, or one of each role.
@@ -202,19 +202,11 @@ fn learner_config(dir: &Path) -> String {
 
 fn start_learner(dir: &Path, security: &str, run: &str) -> (Running, String) {
     let config = learner_config(dir);
-    let run_dir = dir.join(run);
     let log = dir.join(format!("{run}.log"));
-    let (child, addr) = start_service(
-        "learner",
-        &[
-            "serve",
-            "--security",
-            &credentials().file(security),
-            "--config",
-            &config,
-            "--run-dir",
-            run_dir.to_str().unwrap(),
-        ],
+    let (child, addr) = tweezer_system_tests::start_learner_with(
+        &credentials().file(security),
+        &config,
+        &dir.join(run),
         Some(&log),
     );
     (Running::new(child), addr)
@@ -432,4 +424,131 @@ fn a_service_without_its_tokens_or_certificate_does_not_start() {
         "{err}"
     );
     assert!(!Path::new("unused").exists());
+}
+
+#[test]
+fn certificate_names_cannot_leave_the_output_directory() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("pki");
+    let ca = credentials().dir.to_str().unwrap().to_string();
+    for name in ["../evil", "sub/evil", "/tmp/evil"] {
+        let err = stderr_of_failure(&run(
+            "tweezer",
+            &[
+                "cert",
+                "issue",
+                "--ca",
+                &ca,
+                "--name",
+                name,
+                "--host",
+                "localhost",
+                "--out",
+                out.to_str().unwrap(),
+            ],
+        ));
+        assert!(err.contains("certificate name"), "{err}");
+    }
+    assert!(!dir.path().join("evil.crt").exists() && !dir.path().join("evil.key").exists());
+    assert!(!out.exists(), "nothing is written");
+}
+
+#[test]
+fn a_service_whose_certificate_is_not_from_its_ca_does_not_start() {
+    let dir = tempfile::tempdir().unwrap();
+    let other = dir.path().to_str().unwrap();
+    stdout_of(&run(
+        "tweezer",
+        &["cert", "ca", "--out", other, "--days", "2"],
+    ));
+    stdout_of(&run(
+        "tweezer",
+        &[
+            "cert",
+            "issue",
+            "--ca",
+            other,
+            "--name",
+            "server",
+            "--host",
+            "127.0.0.1",
+            "--out",
+            other,
+            "--days",
+            "2",
+        ],
+    ));
+    let security = write(
+        &dir.path().join("server.toml"),
+        &format!(
+            "cert = \"server.crt\"\nkey = \"server.key\"\nca = {:?}\ntokens = {:?}\n",
+            credentials().dir.join("ca.crt"),
+            credentials().dir.join("tokens")
+        ),
+    );
+    let config = learner_config(dir.path());
+    let err = stderr_of_failure(&run(
+        "learner",
+        &[
+            "serve",
+            "--security",
+            &security,
+            "--config",
+            &config,
+            "--run-dir",
+            "unused",
+        ],
+    ));
+    assert!(
+        err.contains("`cert`") && err.contains("does not chain to the CA"),
+        "{err}"
+    );
+}
+
+/// Starts `bin` with `args`, sends it SIGHUP `after` it started (before it
+/// listens), and checks that it still comes up and stops cleanly.
+fn survives_an_early_sighup(bin: &str, args: &[&str], after: Duration) {
+    let mut command = std::process::Command::new(tweezer_system_tests::binary(bin));
+    command.args(args);
+    let (child, addr) = tweezer_system_tests::spawn_service_then(bin, command, None, |child| {
+        std::thread::sleep(after);
+        tweezer_system_tests::signal(child, "HUP");
+    });
+    let service = Running::new(child);
+    assert!(!addr.is_empty());
+    let (status, _) = service.stop();
+    assert!(
+        status.success(),
+        "{bin} after a SIGHUP {after:?} into its start: {status}"
+    );
+}
+
+#[test]
+fn a_sighup_during_start_up_is_a_reload_not_an_exit() {
+    let dir = tempfile::tempdir().unwrap();
+    let config = learner_config(dir.path());
+    let server = credentials().file("server");
+    for (i, after) in [20, 60, 150].into_iter().enumerate() {
+        let run_dir = dir.path().join(format!("run-{i}"));
+        survives_an_early_sighup(
+            "learner",
+            &[
+                "serve",
+                "--auto-resume",
+                "--security",
+                &server,
+                "--config",
+                &config,
+                "--run-dir",
+                run_dir.to_str().unwrap(),
+            ],
+            Duration::from_millis(after),
+        );
+    }
+    let agent_config = credentials().dir.join("agent-control.toml");
+    survives_an_early_sighup(
+        "hardware-agent",
+        &tweezer_system_tests::agent_serve_args(agent_config.to_str().unwrap(), &server),
+        Duration::from_millis(20),
+    );
 }
