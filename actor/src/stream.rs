@@ -52,12 +52,22 @@ pub struct RunReport {
 
 /// An open `StreamSteps` call.
 struct Link {
+    /// When the learner last answered: the stream opened, or an ack came.
+    heard: Instant,
     client: LearnerClient<AuthChannel>,
     batches: tokio::sync::mpsc::Sender<pb::StepBatch>,
     acks: mpsc::Receiver<Result<pb::StepAck, tonic::Status>>,
     /// The largest batch the learner decodes, in bytes.
     max_message_bytes: usize,
 }
+
+/// The longest the actor waits on the learner, for an acknowledgement or
+/// a snapshot, before it takes the link for broken and reconnects (resent
+/// batches are stored once). Keepalive pings find a connection that died
+/// silently within 20 s; this bounds a learner that is reachable but no
+/// longer answers, and is well above the limiter's longest wait on a slow
+/// learner.
+const LINK_DEADLINE: Duration = Duration::from_secs(300);
 
 /// Room kept in a message for the batch's own fields (id, session,
 /// sequence) and protobuf framing.
@@ -367,6 +377,7 @@ impl Actor {
             self.report.batches_sent += 1;
         }
         Ok(Link {
+            heard: Instant::now(),
             client,
             batches,
             acks,
@@ -459,11 +470,18 @@ impl Actor {
         }
     }
 
-    /// Waits up to `timeout` for an acknowledgement.
+    /// Waits up to `timeout` for an acknowledgement; the link is broken
+    /// when batches have waited [`LINK_DEADLINE`] for one.
     fn await_ack(&mut self, link: &mut Link, timeout: Duration) -> Result<(), Broken> {
         match link.acks.recv_timeout(timeout) {
             Ok(ack) => self.acknowledged(link, ack)?,
-            Err(mpsc::RecvTimeoutError::Timeout) => {}
+            Err(mpsc::RecvTimeoutError::Timeout) => {
+                if !self.unacked.is_empty() && link.heard.elapsed() > LINK_DEADLINE {
+                    return Err(Broken::Link(format!(
+                        "no acknowledgement for {LINK_DEADLINE:?}: the learner is unreachable or stalled"
+                    )));
+                }
+            }
             Err(mpsc::RecvTimeoutError::Disconnected) => {
                 return Err(Broken::Link("the stream closed".into()));
             }
@@ -476,6 +494,7 @@ impl Actor {
         link: &mut Link,
         ack: Result<pb::StepAck, tonic::Status>,
     ) -> Result<(), Broken> {
+        link.heard = Instant::now();
         let ack = match ack {
             Ok(ack) => ack,
             // Refusals that sending again cannot mend (RESOURCE_EXHAUSTED:
@@ -523,10 +542,15 @@ impl Actor {
     /// Fetches and loads the learner's newest snapshot.
     fn load_snapshot(&mut self, link: &mut Link) -> Result<(), Broken> {
         let client = &mut link.client;
-        let downloaded = self.runtime.block_on(download_snapshot(
-            client,
-            Selector::Tag(pb::SnapshotTag::Latest.into()),
-        ));
+        let download = download_snapshot(client, Selector::Tag(pb::SnapshotTag::Latest.into()));
+        let downloaded = self
+            .runtime
+            .block_on(async { tokio::time::timeout(LINK_DEADLINE, download).await })
+            .map_err(|_| {
+                Broken::Link(format!(
+                    "no snapshot within {LINK_DEADLINE:?}: the learner is unreachable or stalled"
+                ))
+            })?;
         let (info, bytes) = match downloaded {
             Ok(d) => d,
             Err(tweezer_proto::DownloadError::Status(s)) if s.code() == tonic::Code::NotFound => {

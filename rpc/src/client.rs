@@ -15,6 +15,12 @@ use tonic_health::pb::health_client::HealthClient;
 use tweezer_proto::pb;
 use tweezer_proto::pb::learner_client::LearnerClient;
 
+/// How often every client pings the server, busy or idle.
+const PING_INTERVAL: Duration = Duration::from_secs(10);
+/// How long a client waits for the answer to a ping before it takes the
+/// connection for dead.
+const PING_TIMEOUT: Duration = Duration::from_secs(10);
+
 /// A channel that sends the client's token with every call.
 pub type AuthChannel = InterceptedService<Channel, Bearer>;
 
@@ -145,14 +151,22 @@ impl ClientSecurity {
         }
     }
 
-    /// An endpoint for `address` with these TLS settings.
+    /// An endpoint for `address` with these TLS settings, pinging the
+    /// server every [`PING_INTERVAL`]: a connection whose peer went
+    /// away without a word (a partition, a dead relay) fails within
+    /// [`PING_INTERVAL`] + [`PING_TIMEOUT`], and so do the calls
+    /// waiting on it, instead of waiting for ever.
     pub fn endpoint(&self, address: &str) -> Result<Endpoint, ConnectError> {
         let url = self.url(address)?;
         let bad = |e: &dyn std::error::Error| ConnectError::Address {
             address: address.into(),
             reason: format!("is not an address: {e}"),
         };
-        let mut endpoint = Endpoint::from_shared(url).map_err(|e| bad(&e))?;
+        let mut endpoint = Endpoint::from_shared(url)
+            .map_err(|e| bad(&e))?
+            .http2_keep_alive_interval(PING_INTERVAL)
+            .keep_alive_timeout(PING_TIMEOUT)
+            .keep_alive_while_idle(true);
         if let Some(tls) = &self.tls {
             endpoint = endpoint.tls_config(tls.clone()).map_err(|e| bad(&e))?;
         }
