@@ -13,6 +13,7 @@ use std::path::{Path, PathBuf};
 use tweezer_config::{ConfigError, read_toml};
 use tweezer_gym::EnvConfig;
 use tweezer_vision::SegmentConfig;
+use tweezer_vision::genicam::GenicamConfig;
 
 /// Everything `hardware-agent` reads from its `--config` file; a missing
 /// table or field takes its default.
@@ -108,6 +109,7 @@ impl AgentConfig {
             ("policy", self.policy.validate()),
             ("overlay", self.overlay.validate()),
             ("twin", self.twin.validate()),
+            ("camera", self.camera.genicam.validate()),
         ] {
             check.map_err(|reason| ConfigError::invalid(table, reason))?;
         }
@@ -128,6 +130,20 @@ pub enum CameraSource {
     Replay,
     /// The digital twin's camera (what `--twin` selects).
     Twin,
+    /// A GigE Vision or USB3 Vision camera through Aravis
+    /// (`[camera.genicam]`; a build with the `aravis` feature).
+    Genicam,
+}
+
+impl CameraSource {
+    /// The name the configuration uses.
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::Replay => "replay",
+            Self::Twin => "twin",
+            Self::Genicam => "genicam",
+        }
+    }
 }
 
 /// The `[camera]` table.
@@ -141,6 +157,8 @@ pub struct CameraConfig {
     /// Whether the replay starts over after the last frame.
     #[serde(rename = "loop")]
     pub looping: bool,
+    /// The GenICam camera (source = "genicam").
+    pub genicam: GenicamConfig,
 }
 
 impl Default for CameraConfig {
@@ -149,6 +167,7 @@ impl Default for CameraConfig {
             source: CameraSource::Twin,
             dir: PathBuf::from("frames"),
             looping: false,
+            genicam: GenicamConfig::default(),
         }
     }
 }

@@ -140,8 +140,10 @@ pub struct StepLog {
     pub position_px: [f64; 2],
     /// The stage carriages (X, Y), mm.
     pub stage_mm: [f64; 2],
-    /// Frame in to command out, ms (segmentation, observation, policy,
-    /// stage commands).
+    /// Frame in to command out, ms: from the frame's arrival at this
+    /// computer where the camera says (a GenICam buffer's timestamp), else
+    /// from the end of the grab; segmentation, observation, policy, stage
+    /// commands.
     pub latency_ms: f64,
     /// Of that, the policy, ms.
     pub policy_ms: f64,

@@ -46,6 +46,7 @@ pub fn serve(
     tracing::info!(policy = %policy.description, "policy loaded");
     let mut instrument = Instrument::open(&config, twin)?;
     let stopper = instrument.rig().stopper();
+    let frames = instrument.frame_counters();
     let shared = Arc::new(DaemonState::new(stopper, &policy, instrument.overlay_len()));
     let follow = match config.policy.choice()? {
         PolicyChoice::Follow(tag) if baseline.is_none() => Some(tag),
@@ -88,7 +89,10 @@ pub fn serve(
             let metrics_addr = listener.local_addr()?;
             tracing::info!(%metrics_addr, "Prometheus metrics at /metrics");
             let security = listener_security.clone();
-            let registry = Arc::new(prometheus_metrics::prometheus(shared.clone()));
+            let registry = Arc::new(prometheus_metrics::prometheus(
+                shared.clone(),
+                frames.clone(),
+            ));
             let mut done = stopped.clone();
             tokio::spawn(async move {
                 let shutdown = async move {

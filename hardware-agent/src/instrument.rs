@@ -14,8 +14,9 @@ use serde::Serialize;
 use serialport::TTYPort;
 use std::path::Path;
 use std::sync::Arc;
+use std::time::Instant;
 use tweezer_vision::Segmenter;
-use tweezer_vision::{Camera, CameraError, GrayFrame, ReplayCamera};
+use tweezer_vision::{Camera, CameraError, FrameCounters, GrayFrame, ReplayCamera};
 
 /// The camera an instrument was built with.
 #[derive(Debug)]
@@ -24,21 +25,86 @@ pub enum InstrumentCamera {
     Replay(ReplayCamera),
     /// The digital twin's camera.
     Twin(Box<TwinCamera>),
+    /// A GenICam camera through Aravis.
+    #[cfg(feature = "aravis")]
+    Genicam(Box<tweezer_vision::genicam::GenicamCamera>),
+}
+
+impl InstrumentCamera {
+    fn inner(&mut self) -> &mut dyn Camera {
+        match self {
+            Self::Replay(c) => c,
+            Self::Twin(c) => c.as_mut(),
+            #[cfg(feature = "aravis")]
+            Self::Genicam(c) => c.as_mut(),
+        }
+    }
+
+    fn inner_ref(&self) -> &dyn Camera {
+        match self {
+            Self::Replay(c) => c,
+            Self::Twin(c) => c.as_ref(),
+            #[cfg(feature = "aravis")]
+            Self::Genicam(c) => c.as_ref(),
+        }
+    }
+
+    /// Opens the camera `config` describes (not the twin's), counting its
+    /// frames in `counters`; a live camera waits at most `timeout` for a
+    /// frame.
+    #[cfg_attr(not(feature = "aravis"), allow(unused_variables))]
+    fn open(
+        config: &AgentConfig,
+        timeout: std::time::Duration,
+        counters: &Arc<FrameCounters>,
+    ) -> Result<Self, InstrumentError> {
+        match config.camera.source {
+            CameraSource::Replay => Ok(Self::Replay(
+                ReplayCamera::open(&config.camera.dir, config.camera.looping)
+                    .map_err(|e| fail("camera")(&e))?,
+            )),
+            CameraSource::Twin => Err(InstrumentError(
+                "camera.source = \"twin\" needs the twin's stages too: run with --twin".into(),
+            )),
+            #[cfg(feature = "aravis")]
+            CameraSource::Genicam => {
+                let camera = tweezer_vision::genicam::GenicamCamera::open(
+                    &config.camera.genicam,
+                    timeout,
+                    counters.clone(),
+                )
+                .map_err(|e| fail("camera")(&e))?;
+                tracing::info!(settings = ?camera.settings(), "GenICam camera connected");
+                Ok(Self::Genicam(Box::new(camera)))
+            }
+            #[cfg(not(feature = "aravis"))]
+            CameraSource::Genicam => Err(InstrumentError(format!(
+                "camera.source = \"genicam\": {}",
+                tweezer_vision::genicam::REBUILD_HINT
+            ))),
+        }
+    }
 }
 
 impl Camera for InstrumentCamera {
     fn size(&self) -> [usize; 2] {
-        match self {
-            Self::Replay(c) => c.size(),
-            Self::Twin(c) => c.size(),
-        }
+        self.inner_ref().size()
     }
 
     fn grab(&mut self) -> Result<GrayFrame, CameraError> {
-        match self {
-            Self::Replay(c) => c.grab(),
-            Self::Twin(c) => c.grab(),
-        }
+        self.inner().grab()
+    }
+
+    fn captured(&self) -> Option<Instant> {
+        self.inner_ref().captured()
+    }
+
+    fn start(&mut self) -> Result<(), CameraError> {
+        self.inner().start()
+    }
+
+    fn stop(&mut self) {
+        self.inner().stop();
     }
 }
 
@@ -70,6 +136,8 @@ pub struct Instrument {
     /// The twin's stages, when this is the twin (they live as long as the
     /// instrument).
     twin: Option<Arc<TwinStages>>,
+    /// What the camera delivered and refused.
+    counters: Arc<FrameCounters>,
     config: AgentConfig,
 }
 
@@ -78,6 +146,13 @@ impl Instrument {
     /// freshly started digital twin.
     pub fn open(config: &AgentConfig, twin: bool) -> Result<Self, InstrumentError> {
         let command_interval = config.control.command_interval();
+        let counters = Arc::new(FrameCounters::default());
+        if twin && config.camera.source != CameraSource::Twin {
+            return Err(InstrumentError(format!(
+                "camera.source = \"{}\" conflicts with --twin, which renders the twin's own frames: drop --twin to use that camera, or set camera.source = \"twin\"",
+                config.camera.source.name()
+            )));
+        }
         let (stages, camera, twin) = if twin {
             let twin = Arc::new(
                 TwinStages::spawn(&config.twin).map_err(|e| fail("cannot start the twin")(&e))?,
@@ -100,18 +175,9 @@ impl Instrument {
             .map_err(|e| fail("twin camera")(&e))?;
             (stages, InstrumentCamera::Twin(Box::new(camera)), Some(twin))
         } else {
-            let camera = match config.camera.source {
-                CameraSource::Replay => InstrumentCamera::Replay(
-                    ReplayCamera::open(&config.camera.dir, config.camera.looping)
-                        .map_err(|e| fail("camera")(&e))?,
-                ),
-                CameraSource::Twin => {
-                    return Err(InstrumentError(
-                        "camera.source = \"twin\" needs the twin's stages too: run with --twin"
-                            .into(),
-                    ));
-                }
-            };
+            // A step waits at most a control period for its frame.
+            let timeout = std::time::Duration::from_secs_f64(config.control.period_s());
+            let camera = InstrumentCamera::open(config, timeout, &counters)?;
             let (stages, _) = StagePair::open(&config.stages, command_interval)
                 .map_err(|e| fail("stages")(&e))?;
             (stages, camera, None)
@@ -131,6 +197,7 @@ impl Instrument {
         Ok(Self {
             rig,
             twin,
+            counters,
             config: config.clone(),
         })
     }
@@ -172,6 +239,11 @@ impl Instrument {
         self.rig.overlay().discs().len()
     }
 
+    /// The camera's frame counters, for the metrics.
+    pub fn frame_counters(&self) -> Arc<FrameCounters> {
+        self.counters.clone()
+    }
+
     /// The rig.
     pub fn rig(&mut self) -> &mut Rig<InstrumentCamera, TTYPort> {
         &mut self.rig
@@ -187,7 +259,7 @@ impl Instrument {
     pub fn start_twin_episode(&mut self, seed: u64) -> Option<[f64; 2]> {
         match self.rig.camera() {
             InstrumentCamera::Twin(camera) => Some(camera.start_episode(seed)),
-            InstrumentCamera::Replay(_) => None,
+            _ => None,
         }
     }
 

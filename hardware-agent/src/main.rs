@@ -1,5 +1,6 @@
 //! The hardware-agent command line: `run` (episodes on the instrument or
-//! its digital twin), `home` (the stages, once after power-up), `segment`
+//! its digital twin), `home` (the stages, once after power-up), `cameras`
+//! (the GenICam cameras found), `segment`
 //! (sphere centres in image files, for tuning segmentation on an
 //! instrument's own frames), `bench` and `config`.
 
@@ -39,6 +40,18 @@ enum Command {
     /// JSON line. Needed once after the controllers power up: until then
     /// `run` and `serve` refuse to drive them (`stages.require_homed`).
     Home,
+    /// List the GenICam cameras found (GigE Vision by broadcast, USB3
+    /// Vision on the bus), or describe the one at ADDRESS: id, vendor and
+    /// model, serial number, address and pixel formats. Needs a build with
+    /// the `aravis` feature.
+    Cameras {
+        /// A camera's IP address, id or serial number (a camera on another
+        /// subnet, or on loopback, is reached only by its address).
+        address: Option<String>,
+        /// One JSON object per camera.
+        #[arg(long)]
+        json: bool,
+    },
     /// Run episodes, each recorded (JSON lines and a picture) under the
     /// records directory; prints one JSON line per episode.
     Run {
@@ -129,6 +142,12 @@ enum Command {
         /// backlash within a step).
         #[arg(long, default_value_t = 10.0)]
         rate: f64,
+        /// Instead, measure the configured GenICam camera
+        /// (`[camera.genicam]`): frame-to-command latency in free-run and
+        /// with a software trigger, this many steps each, commanding the
+        /// twin's simulated stages.
+        #[arg(long, value_name = "STEPS")]
+        camera: Option<usize>,
         /// One JSON object instead of a table.
         #[arg(long)]
         json: bool,
@@ -154,6 +173,7 @@ fn main() -> anyhow::Result<()> {
     match cli.command {
         Command::Config => print!("{}", config.to_toml()),
         Command::Home => commands::home::run(&config)?,
+        Command::Cameras { address, json } => commands::cameras::run(address.as_deref(), json)?,
         Command::Run {
             twin,
             episodes,
@@ -212,10 +232,14 @@ fn main() -> anyhow::Result<()> {
             seed,
             snapshot,
             rate,
+            camera,
             json,
         } => {
             config.control.rate_hz = rate;
             config.validate()?;
+            if let Some(steps) = camera {
+                return commands::bench::camera(&config, steps, json);
+            }
             let args = commands::bench::BenchArgs {
                 frames,
                 episodes,

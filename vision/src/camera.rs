@@ -1,15 +1,18 @@
 //! Cameras: a grayscale frame type and the [`Camera`] trait the control loop
-//! grabs frames through, with a backend that replays frames from files
-//! ([`ReplayCamera`]); the digital twin's camera lives in the hardware
-//! agent.
+//! grabs frames through, with backends that replay frames from files
+//! ([`ReplayCamera`]) and drive GenICam cameras through Aravis
+//! ([`genicam`]); the digital twin's camera lives in the hardware agent.
 
 mod files;
+pub mod genicam;
 mod replay;
 
 pub use files::{read_frame, write_frame};
 pub use replay::ReplayCamera;
 
 use std::path::PathBuf;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::time::Instant;
 
 /// One grayscale camera frame, row-major, x right and y down.
 #[derive(Clone, Debug, PartialEq)]
@@ -94,15 +97,75 @@ pub enum CameraError {
     /// No frame came within the allowed time.
     #[error("the camera gave no frame within {0:?}")]
     Stalled(std::time::Duration),
+    /// A camera setting was refused or could not be applied.
+    #[error("camera setting {setting}: {reason}")]
+    Setting {
+        /// The setting, as the configuration names it.
+        setting: String,
+        /// What is wrong and what to do.
+        reason: String,
+    },
+    /// The camera could not be reached, or stopped answering.
+    #[error("{0}")]
+    Device(String),
 }
 
-/// A source of frames: a real camera SDK, a replayed directory, or the
-/// digital twin. `grab` returns the newest frame, waiting for one if none
-/// has arrived since the last call.
+/// A source of frames: a real camera, a replayed directory, or the digital
+/// twin. `grab` returns a frame captured after the previous call returned:
+/// a live camera waits for its next frame.
 pub trait Camera: Send {
     /// Width and height of every frame, px.
     fn size(&self) -> [usize; 2];
 
     /// The next frame.
     fn grab(&mut self) -> Result<GrayFrame, CameraError>;
+
+    /// When the frame `grab` last returned reached this computer, if the
+    /// camera knows (a live camera's buffer timestamp); the loop's latency
+    /// counts from there, else from the end of `grab`.
+    fn captured(&self) -> Option<Instant> {
+        None
+    }
+
+    /// Readies the camera for an episode: reconnects a camera that was
+    /// lost and starts acquiring.
+    fn start(&mut self) -> Result<(), CameraError> {
+        Ok(())
+    }
+
+    /// Ends acquisition after an episode.
+    fn stop(&mut self) {}
+}
+
+/// What a camera delivered and refused, for the metrics: frames that
+/// arrive incomplete or that never arrive are counted and never reach
+/// segmentation.
+#[derive(Debug, Default)]
+pub struct FrameCounters {
+    frames: AtomicU64,
+    incomplete: AtomicU64,
+    dropped: AtomicU64,
+}
+
+impl FrameCounters {
+    /// Counts a frame handed to the loop.
+    pub fn frame(&self) {
+        self.frames.fetch_add(1, Ordering::Relaxed);
+    }
+
+    /// Counts a frame that arrived incomplete or malformed.
+    pub fn incomplete(&self) {
+        self.incomplete.fetch_add(1, Ordering::Relaxed);
+    }
+
+    /// Counts `n` frames asked of the camera (by a trigger) that never
+    /// arrived.
+    pub fn dropped(&self, n: u64) {
+        self.dropped.fetch_add(n, Ordering::Relaxed);
+    }
+
+    /// Frames handed to the loop, incomplete frames, dropped frames.
+    pub fn read(&self) -> [u64; 3] {
+        [&self.frames, &self.incomplete, &self.dropped].map(|c| c.load(Ordering::Relaxed))
+    }
 }

@@ -3,6 +3,8 @@
 //! the control loop on the twin against the virtual environment, for the
 //! greedy baseline and a trained snapshot.
 
+#[cfg(feature = "aravis")]
+mod camera_latency;
 mod control_loop;
 
 use control_loop::{Comparison, compare};
@@ -32,6 +34,45 @@ pub struct BenchArgs {
     pub snapshot: Option<PathBuf>,
     /// One JSON object instead of a table.
     pub json: bool,
+}
+
+/// Measures the configured GenICam camera's frame-to-command latency in
+/// each acquisition mode, `steps` steps each, and prints the figures.
+#[cfg(feature = "aravis")]
+pub fn camera(config: &AgentConfig, steps: usize, json_out: bool) -> anyhow::Result<()> {
+    let modes = camera_latency::measure(config, steps)?;
+    if json_out {
+        println!(
+            "{}",
+            json!({"control_rate_hz": config.control.rate_hz, "camera": config.camera.genicam.camera, "modes": modes})
+        );
+        return Ok(());
+    }
+    println!(
+        "camera {} at {} Hz: frame arrival to stage command, and step start to stage command",
+        config.camera.genicam.camera, config.control.rate_hz
+    );
+    println!("acquisition        steps  frame p50  p99 ms  tick p50  p99 ms  incomplete  dropped");
+    for m in &modes {
+        println!(
+            "{:<17}  {:>5}  {:>9.2}  {:>6.2}  {:>8.2}  {:>6.2}  {:>10}  {:>7}",
+            format!("{:?}", m.acquisition),
+            m.steps,
+            m.frame_to_command_ms_median,
+            m.frame_to_command_ms_p99,
+            m.tick_to_command_ms_median,
+            m.tick_to_command_ms_p99,
+            m.incomplete_frames,
+            m.dropped_frames
+        );
+    }
+    Ok(())
+}
+
+/// Refuses: this build has no GenICam support.
+#[cfg(not(feature = "aravis"))]
+pub fn camera(_config: &AgentConfig, _steps: usize, _json_out: bool) -> anyhow::Result<()> {
+    anyhow::bail!("{}", tweezer_vision::genicam::REBUILD_HINT)
 }
 
 /// Runs the benchmark and prints its figures.

@@ -120,7 +120,16 @@ impl<C: Camera, P: Read + Write + Send + 'static> Rig<C, P> {
     ) -> EpisodeSummary {
         let started = Instant::now();
         let mut progress = Progress::default();
-        let ending = match self.stages.position_px() {
+        let ready = self
+            .camera
+            .start()
+            .map_err(|e| Ending::Fault(format!("camera: {e}")))
+            .and_then(|()| {
+                self.stages
+                    .position_px()
+                    .map_err(|e| Ending::Fault(e.to_string()))
+            });
+        let ending = match ready {
             Ok(start_px) => {
                 progress.start_px = start_px;
                 progress.end_px = start_px;
@@ -130,7 +139,7 @@ impl<C: Camera, P: Read + Write + Send + 'static> Rig<C, P> {
                 ];
                 self.drive(policy, halt, &mut on_step, &mut progress)
             }
-            Err(e) => Ending::Fault(e.to_string()),
+            Err(ending) => ending,
         };
         self.watchdog.disarm();
         let _ = self.watchdog.take_tripped();
@@ -142,6 +151,7 @@ impl<C: Camera, P: Read + Write + Send + 'static> Rig<C, P> {
             // Whatever failed, the motors get the stop by the other path too.
             let _ = self.stages.stopper().stop_now();
         }
+        self.camera.stop();
         let duration_s = started.elapsed().as_secs_f64();
         EpisodeSummary {
             timing: LoopTiming::of(&mut progress.latencies, duration_s, progress.steps),
@@ -196,7 +206,7 @@ impl<C: Camera, P: Read + Write + Send + 'static> Rig<C, P> {
                 Ok(frame) => frame,
                 Err(e) => return Ending::Fault(format!("camera: {e}")),
             };
-            let frame_in = Instant::now();
+            let frame_in = self.camera.captured().unwrap_or_else(Instant::now);
             let mut detections = match self.segmenter.segment(&frame) {
                 Ok(d) => d,
                 Err(e) => return Ending::Fault(format!("segmentation: {e}")),

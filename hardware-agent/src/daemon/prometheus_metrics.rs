@@ -1,13 +1,16 @@
 //! The hardware agent's Prometheus metrics: what its status shows, read at
-//! each scrape, step and episode counters, and the loop's latency.
+//! each scrape, step and episode counters, the camera's frame counters,
+//! and the loop's latency.
 
 use super::state::{DaemonState, State};
 use std::sync::Arc;
 use std::sync::atomic::Ordering;
 use tweezer_rpc::{MetricSample, Prometheus};
+use tweezer_vision::FrameCounters;
 
-/// The metrics of the agent whose state is `shared`.
-pub fn prometheus(shared: Arc<DaemonState>) -> Prometheus {
+/// The metrics of the agent whose state is `shared` and whose camera
+/// counts its frames in `frames`.
+pub fn prometheus(shared: Arc<DaemonState>, frames: Arc<FrameCounters>) -> Prometheus {
     let mut metrics = Prometheus::new("tweezer_agent");
     metrics.histogram(
         "step_latency_seconds",
@@ -17,7 +20,23 @@ pub fn prometheus(shared: Arc<DaemonState>) -> Prometheus {
     metrics.samples(move || {
         let status = shared.status().clone();
         let state = |s: State| f64::from(u8::from(status.state() == s));
+        let [delivered, incomplete, dropped] = frames.read();
         vec![
+            MetricSample::counter(
+                "camera_frames",
+                "Frames a live camera handed to segmentation.",
+                delivered,
+            ),
+            MetricSample::counter(
+                "camera_incomplete_frames",
+                "Frames that arrived incomplete or malformed, kept from segmentation.",
+                incomplete,
+            ),
+            MetricSample::counter(
+                "camera_dropped_frames",
+                "Frames triggered by software that never arrived.",
+                dropped,
+            ),
             MetricSample::counter("episodes", "Episodes started.", status.episode),
             MetricSample::counter(
                 "steps",
