@@ -13,6 +13,7 @@ use std::path::{Path, PathBuf};
 use tweezer_config::{ConfigError, read_toml};
 use tweezer_gym::EnvConfig;
 use tweezer_vision::SegmentConfig;
+use tweezer_vision::frame_stream::StreamConfig;
 use tweezer_vision::genicam::GenicamConfig;
 
 /// Everything `hardware-agent` reads from its `--config` file; a missing
@@ -110,6 +111,7 @@ impl AgentConfig {
             ("overlay", self.overlay.validate()),
             ("twin", self.twin.validate()),
             ("camera", self.camera.genicam.validate()),
+            ("camera", self.camera.stream_validate()),
         ] {
             check.map_err(|reason| ConfigError::invalid(table, reason))?;
         }
@@ -133,6 +135,8 @@ pub enum CameraSource {
     /// A GigE Vision or USB3 Vision camera through Aravis
     /// (`[camera.genicam]`; a build with the `aravis` feature).
     Genicam,
+    /// Frames another program writes (`[camera.stream]`).
+    Stream,
 }
 
 impl CameraSource {
@@ -142,6 +146,7 @@ impl CameraSource {
             Self::Replay => "replay",
             Self::Twin => "twin",
             Self::Genicam => "genicam",
+            Self::Stream => "stream",
         }
     }
 }
@@ -159,6 +164,18 @@ pub struct CameraConfig {
     pub looping: bool,
     /// The GenICam camera (source = "genicam").
     pub genicam: GenicamConfig,
+    /// The program feeding frames (source = "stream").
+    pub stream: StreamConfig,
+}
+
+impl CameraConfig {
+    /// The `[camera.stream]` table is checked when it is the source.
+    fn stream_validate(&self) -> Result<(), String> {
+        match self.source {
+            CameraSource::Stream => self.stream.validate(),
+            _ => Ok(()),
+        }
+    }
 }
 
 impl Default for CameraConfig {
@@ -168,6 +185,7 @@ impl Default for CameraConfig {
             dir: PathBuf::from("frames"),
             looping: false,
             genicam: GenicamConfig::default(),
+            stream: StreamConfig::default(),
         }
     }
 }

@@ -16,6 +16,7 @@ use std::path::Path;
 use std::sync::Arc;
 use std::time::Instant;
 use tweezer_vision::Segmenter;
+use tweezer_vision::frame_stream::StreamCamera;
 use tweezer_vision::{Camera, CameraError, FrameCounters, GrayFrame, ReplayCamera};
 
 /// The camera an instrument was built with.
@@ -28,6 +29,8 @@ pub enum InstrumentCamera {
     /// A GenICam camera through Aravis.
     #[cfg(feature = "aravis")]
     Genicam(Box<tweezer_vision::genicam::GenicamCamera>),
+    /// Frames another program writes.
+    Stream(Box<StreamCamera>),
 }
 
 impl InstrumentCamera {
@@ -37,6 +40,7 @@ impl InstrumentCamera {
             Self::Twin(c) => c.as_mut(),
             #[cfg(feature = "aravis")]
             Self::Genicam(c) => c.as_mut(),
+            Self::Stream(c) => c.as_mut(),
         }
     }
 
@@ -46,13 +50,13 @@ impl InstrumentCamera {
             Self::Twin(c) => c.as_ref(),
             #[cfg(feature = "aravis")]
             Self::Genicam(c) => c.as_ref(),
+            Self::Stream(c) => c.as_ref(),
         }
     }
 
     /// Opens the camera `config` describes (not the twin's), counting its
     /// frames in `counters`; a live camera waits at most `timeout` for a
     /// frame.
-    #[cfg_attr(not(feature = "aravis"), allow(unused_variables))]
     fn open(
         config: &AgentConfig,
         timeout: std::time::Duration,
@@ -63,6 +67,10 @@ impl InstrumentCamera {
                 ReplayCamera::open(&config.camera.dir, config.camera.looping)
                     .map_err(|e| fail("camera")(&e))?,
             )),
+            CameraSource::Stream => Ok(Self::Stream(Box::new(
+                StreamCamera::open(&config.camera.stream, timeout, counters.clone())
+                    .map_err(|e| fail("camera")(&e))?,
+            ))),
             CameraSource::Twin => Err(InstrumentError(
                 "camera.source = \"twin\" needs the twin's stages too: run with --twin".into(),
             )),

@@ -8,19 +8,16 @@
 //! (`segmentation.rs`). Built with `--features aravis` only.
 #![cfg(feature = "aravis")]
 
-use kdc101::StagePair;
-use serialport::TTYPort;
+mod common;
+
 use std::process::{Child, Command, Stdio};
 use std::sync::{Arc, Mutex, MutexGuard};
 use std::time::{Duration, Instant};
-use tweezer_gym::{Baseline, EnvConfig};
-use tweezer_hardware_agent::config::AgentConfig;
-use tweezer_hardware_agent::control::{ControlConfig, Ending, Halt, Rig};
-use tweezer_hardware_agent::overlay::Overlay;
+use tweezer_gym::Baseline;
+use tweezer_hardware_agent::control::{Ending, Halt};
 use tweezer_hardware_agent::policy_source::LoadedPolicy;
-use tweezer_hardware_agent::twin::TwinStages;
 use tweezer_vision::genicam::{Acquisition, GenicamCamera, GenicamConfig, PixelFormat};
-use tweezer_vision::{Camera, CameraError, FrameCounters, Segmenter};
+use tweezer_vision::{Camera, CameraError, FrameCounters};
 
 /// The simulated camera's address: it listens on GVCP's fixed port, so
 /// one runs at a time (the tests take [`one_camera`]).
@@ -250,26 +247,9 @@ fn incomplete_frames_are_counted_and_never_handed_out() {
 fn a_camera_lost_mid_episode_is_a_fault_with_the_stages_stopped_then_reconnects() {
     let _port = one_camera();
     let fake = FakeCamera::start();
-    let config = AgentConfig {
-        env: EnvConfig {
-            min_free_spheres: 0,
-            max_free_spheres: 0,
-            ..EnvConfig::default()
-        },
-        ..AgentConfig::default()
-    };
-    let control = ControlConfig {
-        rate_hz: 10.0,
-        deadline_margin_ms: 2000.0,
-        // The test pattern holds no trapped sphere: the loop holds the
-        // stages still, frame after frame, until it gives up.
-        lost_trap_frames: 100,
-        ..config.control.clone()
-    };
-    let twin = Arc::new(TwinStages::spawn(&config.twin).unwrap());
-    let (stages, _) =
-        StagePair::<TTYPort>::open_paths(twin.ports(), &config.stages, control.command_interval())
-            .unwrap();
+    // The test pattern holds no trapped sphere: the loop holds the stages
+    // still, frame after frame, until it gives up.
+    let (config, control) = common::agent_config(100);
     let counters = Arc::new(FrameCounters::default());
     let camera = GenicamCamera::open(
         &GenicamConfig {
@@ -281,17 +261,7 @@ fn a_camera_lost_mid_episode_is_a_fault_with_the_stages_stopped_then_reconnects(
         counters.clone(),
     )
     .unwrap();
-    let segmenter = Segmenter::new(config.segmentation.clone(), camera.size()).unwrap();
-    let overlay = Overlay::new(&Default::default(), config.stages.px_per_um, 27.0).unwrap();
-    let mut rig = Rig::new(
-        camera,
-        stages,
-        segmenter,
-        config.env.clone(),
-        control,
-        overlay,
-    )
-    .unwrap();
+    let (mut rig, twin) = common::twin_rig(camera, &config, control);
     let mut policy = LoadedPolicy::baseline(Baseline::Greedy, &config.env);
     let halt = Halt::default();
 
@@ -309,9 +279,7 @@ fn a_camera_lost_mid_episode_is_a_fault_with_the_stages_stopped_then_reconnects(
         reason.contains("camera") && reason.contains("lost"),
         "{reason}"
     );
-    for stage in twin.stages() {
-        assert_eq!(stage.controller().speed_mm_s(), 0.0, "a stage still moves");
-    }
+    assert!(common::still(&twin), "a stage still moves");
     let before = counters.read()[0];
     assert!(before >= 5, "{before} frames before the camera died");
 

@@ -1,9 +1,11 @@
 //! Cameras: a grayscale frame type and the [`Camera`] trait the control loop
 //! grabs frames through, with backends that replay frames from files
-//! ([`ReplayCamera`]) and drive GenICam cameras through Aravis
+//! ([`ReplayCamera`]), read frames another program writes
+//! ([`frame_stream`]) and drive GenICam cameras through Aravis
 //! ([`genicam`]); the digital twin's camera lives in the hardware agent.
 
 mod files;
+pub mod frame_stream;
 pub mod genicam;
 mod replay;
 
@@ -12,7 +14,18 @@ pub use replay::ReplayCamera;
 
 use std::path::PathBuf;
 use std::sync::atomic::{AtomicU64, Ordering};
-use std::time::Instant;
+use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
+
+/// The instant of a moment given as time since the Unix epoch (a camera's
+/// or a program's timestamp), no later than now.
+pub(crate) fn instant_of_unix(since_epoch: Duration) -> Instant {
+    let now = Instant::now();
+    let ago = SystemTime::now()
+        .duration_since(UNIX_EPOCH)
+        .unwrap_or_default()
+        .saturating_sub(since_epoch);
+    now.checked_sub(ago).unwrap_or(now)
+}
 
 /// One grayscale camera frame, row-major, x right and y down.
 #[derive(Clone, Debug, PartialEq)]

@@ -9,6 +9,7 @@ mod camera;
 mod segment;
 
 pub use camera::{
-    Camera, CameraError, FrameCounters, GrayFrame, ReplayCamera, genicam, read_frame, write_frame,
+    Camera, CameraError, FrameCounters, GrayFrame, ReplayCamera, frame_stream, genicam, read_frame,
+    write_frame,
 };
 pub use segment::{Detection, SegmentConfig, SegmentError, Segmenter};

@@ -4,11 +4,11 @@
 //! and reconnect after the camera was lost.
 
 use super::{Acquisition, CameraInfo, GenicamConfig, GenicamSettings};
-use crate::camera::{Camera, CameraError, FrameCounters, GrayFrame};
+use crate::camera::{Camera, CameraError, FrameCounters, GrayFrame, instant_of_unix};
 use aravis::prelude::*;
 use aravis::{BufferStatus, GvInterface, UvInterface};
 use std::sync::Arc;
-use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
+use std::time::{Duration, Instant};
 
 /// Relative disagreement allowed between a float setting and its read-back
 /// (cameras round exposure and rate to their clock).
@@ -268,7 +268,7 @@ impl GenicamCamera {
             }
             match frame {
                 Some(frame) => {
-                    self.captured = Some(instant_of(arrived));
+                    self.captured = Some(instant_of_unix(Duration::from_nanos(arrived)));
                     return Ok(frame);
                 }
                 None => {
@@ -278,16 +278,6 @@ impl GenicamCamera {
             }
         }
     }
-}
-
-/// The instant of a host timestamp (ns since the epoch), no later than now.
-fn instant_of(ns: u64) -> Instant {
-    let now = Instant::now();
-    let since = SystemTime::now()
-        .duration_since(UNIX_EPOCH)
-        .unwrap_or_default()
-        .saturating_sub(Duration::from_nanos(ns));
-    now.checked_sub(since).unwrap_or(now)
 }
 
 impl Camera for GenicamCamera {
