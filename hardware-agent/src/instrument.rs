@@ -174,11 +174,12 @@ impl Instrument {
             );
             let (stages, _) = StagePair::open_paths(twin.ports(), &config.stages, command_interval)
                 .map_err(|e| fail("twin stages")(&e))?;
+            let truth = config.twin.truth.as_ref();
             let camera = TwinCamera::new(
                 twin.clone(),
                 &config.env,
                 config.twin.optics.clone(),
-                config.stages.calibration(),
+                truth.map_or_else(|| config.stages.calibration(), |t| t.calibration()),
             )
             .map_err(|e| fail("twin camera")(&e))?;
             (stages, InstrumentCamera::Twin(Box::new(camera)), Some(twin))

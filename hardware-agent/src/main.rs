@@ -40,6 +40,32 @@ enum Command {
     /// JSON line. Needed once after the controllers power up: until then
     /// `run` and `serve` refuse to drive them (`stages.require_homed`).
     Home,
+    /// Measure the calibration: move each stage a few small distances
+    /// within its soft limits and follow the free spheres in the image;
+    /// prints `px_per_um`, `image_x`, `x_sign`, `y_sign`, each stage's
+    /// backlash and the residual, and with --write sets them in a config
+    /// file's `[stages]`. Refused when the scene has too few free spheres
+    /// or the moves disagree.
+    Calibrate {
+        /// Calibrate the digital twin (its `[twin.truth]`, if set, is what
+        /// it should find).
+        #[arg(long)]
+        twin: bool,
+        /// The twin's scene (the seed of its free spheres).
+        #[arg(long, default_value_t = 0)]
+        seed: u64,
+        /// Each move, µm: more than the backlash, small enough that the
+        /// spheres stay in view.
+        #[arg(long, default_value_t = 20.0)]
+        move_um: f64,
+        /// Set the calibration in this config file's `[stages]` table
+        /// (created if missing; its other settings and comments kept).
+        #[arg(long, value_name = "FILE")]
+        write: Option<PathBuf>,
+        /// One JSON object instead of text.
+        #[arg(long)]
+        json: bool,
+    },
     /// List the GenICam cameras found (GigE Vision by broadcast, USB3
     /// Vision on the bus), or describe the one at ADDRESS: id, vendor and
     /// model, serial number, address and pixel formats. Needs a build with
@@ -173,6 +199,22 @@ fn main() -> anyhow::Result<()> {
     match cli.command {
         Command::Config => print!("{}", config.to_toml()),
         Command::Home => commands::home::run(&config)?,
+        Command::Calibrate {
+            twin,
+            seed,
+            move_um,
+            write,
+            json,
+        } => commands::calibrate::run(
+            &config,
+            &commands::calibrate::CalibrateArgs {
+                twin,
+                seed,
+                move_um,
+                write,
+                json,
+            },
+        )?,
         Command::Cameras { address, json } => commands::cameras::run(address.as_deref(), json)?,
         Command::Run {
             twin,

@@ -11,4 +11,4 @@ mod world;
 
 pub use optics::{Debris, OpticsConfig};
 pub use quality::{DetectionQuality, MATCH_RADIUS_PX, detection_quality, episode_scene};
-pub use world::{TwinCamera, TwinConfig, TwinStages};
+pub use world::{TrueCalibration, TwinCamera, TwinConfig, TwinStages};

@@ -2,8 +2,9 @@
 //! Vision camera (`arv-fake-gv-camera-0.8`, Debian's aravis-tools) on
 //! loopback, where it is reached by address: discovery by address, the
 //! settings read back, a feature refused, frames at the configured rate,
-//! software triggering, and the camera killed mid-episode (a fault with the
-//! stages stopped, then a reconnect). The simulated camera serves its own
+//! software triggering, incomplete frames counted, the time from a frame
+//! to its command measured (`bench --camera`), and the camera killed
+//! mid-episode (a fault with the stages stopped, then a reconnect). The simulated camera serves its own
 //! test pattern, not spheres: segmentation is tested on the twin's frames
 //! (`segmentation.rs`). Built with `--features aravis` only.
 #![cfg(feature = "aravis")]
@@ -219,6 +220,47 @@ fn free_run_frames_come_at_the_configured_rate_and_software_triggers_one_at_a_ti
     let times = grab_frames(&mut triggered, 5);
     assert!(times.windows(2).all(|w| w[1] > w[0]));
     triggered.stop();
+}
+
+#[test]
+fn the_bench_measures_the_time_from_a_frame_to_its_command_in_both_modes() {
+    let _port = one_camera();
+    let _camera = FakeCamera::start();
+    let dir = tempfile::tempdir().unwrap();
+    let config = dir.path().join("agent.toml");
+    std::fs::write(
+        &config,
+        format!(
+            "[camera]\nsource = \"genicam\"\n[camera.genicam]\ncamera = \"{ADDRESS}\"\nroi = [0, 0, 640, 480]\nframe_rate_hz = 50.0\n"
+        ),
+    )
+    .unwrap();
+    let output = Command::new(env!("CARGO_BIN_EXE_hardware-agent"))
+        .arg("--config")
+        .arg(&config)
+        .args(["bench", "--camera", "20", "--json"])
+        .output()
+        .unwrap();
+    assert!(output.status.success(), "{output:?}");
+    let figures: serde_json::Value = serde_json::from_slice(&output.stdout).unwrap();
+    let modes = figures["modes"].as_array().unwrap();
+    let names: Vec<&str> = modes
+        .iter()
+        .map(|m| m["acquisition"].as_str().unwrap())
+        .collect();
+    assert_eq!(names, ["free-run", "software-trigger"]);
+    for mode in modes {
+        assert_eq!(mode["steps"], 20);
+        let (median, p99) = (
+            mode["frame_to_command_ms_median"].as_f64().unwrap(),
+            mode["frame_to_command_ms_p99"].as_f64().unwrap(),
+        );
+        // Measured, and in order; how fast is the benchmark's to say.
+        assert!(0.0 < median && median <= p99, "{mode}");
+        let tick = mode["tick_to_command_ms_median"].as_f64().unwrap();
+        assert!(tick > 0.0, "{mode}");
+    }
+    eprintln!("{figures}");
 }
 
 #[test]

@@ -3,11 +3,10 @@
 //! them mid-travel, and prints one JSON line with where and which
 //! controllers.
 
-use anyhow::Context;
 use kdc101::{StagePair, StagesConfig};
 use serde_json::json;
 use tweezer_hardware_agent::config::AgentConfig;
-use tweezer_process::{StopSignals, init_logging};
+use tweezer_process::init_logging;
 
 /// Homes and parks the configured stages. SIGINT or SIGTERM stops both
 /// motors at once and ends the process.
@@ -18,21 +17,7 @@ pub fn run(config: &AgentConfig) -> anyhow::Result<()> {
         ..config.stages.clone()
     };
     let (mut stages, info) = StagePair::open(&homing, config.control.command_interval())?;
-    let stopper = stages.stopper();
-    let signals = tokio::runtime::Builder::new_current_thread()
-        .enable_all()
-        .build()
-        .context("cannot watch for signals")?;
-    let mut stop = StopSignals::install(signals.handle())?;
-    std::thread::spawn(move || {
-        let name = signals.block_on(stop.recv());
-        let stopped = stopper.stop_now();
-        tracing::warn!(
-            ?stopped,
-            "{name}: both stages stopped before homing finished"
-        );
-        std::process::exit(130);
-    });
+    super::stop_stages_on_signal(stages.stopper(), "homing")?;
     tracing::info!(
         x = info[0].serial,
         y = info[1].serial,

@@ -3,7 +3,7 @@
 //! under the trap, and its camera renders what the objective would see.
 
 use super::OpticsConfig;
-use kdc101::{ActuatorModel, Calibration, PtySimulator};
+use kdc101::{ActuatorModel, Calibration, ImageAxis, PtySimulator};
 use serde::{Deserialize, Serialize};
 use std::path::Path;
 use std::sync::Arc;
@@ -24,6 +24,34 @@ pub struct TwinConfig {
     pub backlash_um: f64,
     /// Where both actuators start, mm.
     pub start_mm: f64,
+    /// How the twin's stages truly move its image, when that differs from
+    /// what `[stages]` says (the calibration `calibrate --twin` must find).
+    pub truth: Option<TrueCalibration>,
+}
+
+/// The `[twin.truth]` table: the twin's own calibration.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct TrueCalibration {
+    /// Camera pixels per µm of stage travel.
+    pub px_per_um: f64,
+    /// Which stage moves the sample along the image's x axis.
+    pub image_x: ImageAxis,
+    /// Stage X's sign, as `stages.x_sign`.
+    pub x_sign: f64,
+    /// Stage Y's sign.
+    pub y_sign: f64,
+}
+
+impl TrueCalibration {
+    /// As the stage driver uses it.
+    pub fn calibration(&self) -> Calibration {
+        Calibration {
+            px_per_um: self.px_per_um,
+            image_x: self.image_x,
+            signs: [self.x_sign, self.y_sign],
+        }
+    }
 }
 
 impl Default for TwinConfig {
@@ -33,6 +61,7 @@ impl Default for TwinConfig {
             latency_ms: 2,
             backlash_um: 8.0,
             start_mm: 6.0,
+            truth: None,
         }
     }
 }
@@ -46,6 +75,16 @@ impl TwinConfig {
                 "twin.latency_ms = {}: at most 1000",
                 self.latency_ms
             ));
+        }
+        if let Some(truth) = &self.truth {
+            let valid = truth.px_per_um.is_finite()
+                && (0.01..=1000.0).contains(&truth.px_per_um)
+                && [truth.x_sign, truth.y_sign].iter().all(|s| s.abs() == 1.0);
+            if !valid {
+                return Err(format!(
+                    "twin.truth: px_per_um must lie in [0.01, 1000] and each sign be 1 or -1, not {truth:?}"
+                ));
+            }
         }
         for (name, value, lo, hi) in [
             ("backlash_um", self.backlash_um, 0.0, 100.0),

@@ -267,7 +267,14 @@ impl<P: Read + Write> StagePair<P> {
     /// clamped and kept inside its limits by its driver). On an error, both
     /// motors are stopped.
     pub fn set_velocity_px(&mut self, px_per_s: [f64; 2]) -> Result<[Commanded; 2], StagesError> {
-        let mm_s = self.calibration.mm(px_per_s);
+        self.set_velocity_mm(self.calibration.mm(px_per_s))
+    }
+
+    /// Moves each stage (X, Y) at its own speed, mm/s, whatever the
+    /// calibration (which `hardware-agent calibrate` is measuring); each is
+    /// clamped and kept inside its limits by its driver. On an error, both
+    /// motors are stopped.
+    pub fn set_velocity_mm(&mut self, mm_s: [f64; 2]) -> Result<[Commanded; 2], StagesError> {
         self.each_or_stop(|axis, stage| stage.set_velocity(mm_s[axis]))
     }
 
