@@ -626,24 +626,38 @@ pub fn check(program: &Path, args: &[&str]) -> String {
 /// `tests/python/<requirements>` installed from PyPI; its `bin` directory.
 pub fn python_venv(dir: &Path, requirements: &str) -> PathBuf {
     let venv = dir.join("venv");
-    check(
-        Path::new("python3"),
-        &["-m", "venv", venv.to_str().expect("a UTF-8 path")],
+    let made = Command::new("python3")
+        .args(["-m", "venv"])
+        .arg(&venv)
+        .output()
+        .unwrap_or_else(|e| {
+            panic!("this test needs python3 ({e}): install it (Debian: apt-get install python3 python3-venv)")
+        });
+    assert!(
+        made.status.success(),
+        "this test needs Python's venv module: install it (Debian: apt-get install python3-venv); python3 -m venv said:\n{}",
+        String::from_utf8_lossy(&made.stderr)
     );
     let requirements = Path::new(env!("CARGO_MANIFEST_DIR"))
         .join("python")
         .join(requirements);
-    check(
-        &venv.join("bin/python"),
-        &[
-            "-m",
-            "pip",
-            "install",
-            "--quiet",
-            "--disable-pip-version-check",
-            "-r",
-            requirements.to_str().expect("a UTF-8 path"),
-        ],
+    let installed = output_of(
+        Command::new(venv.join("bin/python"))
+            .args([
+                "-m",
+                "pip",
+                "install",
+                "--quiet",
+                "--disable-pip-version-check",
+                "-r",
+            ])
+            .arg(&requirements),
+    );
+    assert!(
+        installed.status.success(),
+        "this test installs {} from PyPI, which it could not reach (or set PIP_INDEX_URL to a mirror); pip said:\n{}",
+        requirements.display(),
+        String::from_utf8_lossy(&installed.stderr)
     );
     venv.join("bin")
 }
