@@ -175,7 +175,7 @@ EOF
 
 run="$work/run"
 job=$(TWEEZER_BIN="$bin" TWEEZER_RUN="$run" TWEEZER_CONFIG="$work/learner.toml" \
-    TWEEZER_ACTOR_CONFIG="$work/actor.toml" TWEEZER_SECURITY="$sec" \
+    TWEEZER_ACTOR_CONFIG="$work/actor.toml" TWEEZER_SECURITY_DIR="$sec" \
     TWEEZER_PORT=$((ctld_port + 3)) TWEEZER_METRICS_PORT=$((ctld_port + 4)) TWEEZER_SECONDS=45 \
     sbatch --parsable --output="$work/job.out" "$here/train.sbatch")
 job="${job%%;*}"
