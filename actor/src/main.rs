@@ -10,6 +10,7 @@ mod stream;
 
 use anyhow::{Context, bail};
 use burn::tensor::Device;
+use clap::builder::TypedValueParser as _;
 use clap::{Parser, Subcommand};
 use config::ActorFile;
 use std::path::{Path, PathBuf};
@@ -72,7 +73,7 @@ enum Command {
         #[arg(long, default_value = "0..1000")]
         seeds: Seeds,
         /// Episodes run side by side (the policy's batch).
-        #[arg(long, default_value_t = 64)]
+        #[arg(long, default_value_t = 64, value_parser = clap::value_parser!(u64).range(1..).map(|b| b as usize))]
         batch: usize,
         /// Print one JSON object instead of a table.
         #[arg(long)]
@@ -90,7 +91,7 @@ enum Command {
         #[arg(long)]
         observations: Option<PathBuf>,
         /// Observations acted on at once (the policy's batch).
-        #[arg(long, default_value_t = 64)]
+        #[arg(long, default_value_t = 64, value_parser = clap::value_parser!(u64).range(1..).map(|b| b as usize))]
         batch: usize,
     },
     /// Measure environment and renderer speed.
@@ -128,9 +129,19 @@ fn policy_named(name: &str, env: &EnvConfig) -> anyhow::Result<Box<dyn Policy>> 
     if let Some(baseline) = Baseline::named(name) {
         return Ok(baseline.policy(env));
     }
-    if Path::new(name).is_file() {
-        let (policy, _) = NetworkPolicy::from_file(Path::new(name), env, &Device::flex())?;
+    let path = Path::new(name);
+    if path.is_file() {
+        let (policy, _) = NetworkPolicy::from_file(path, env, &Device::flex())?;
         return Ok(Box::new(policy));
+    }
+    if path.is_dir() {
+        bail!(
+            "policy {name} is a directory: name a snapshot file in it (a run's snapshots are in RUN/snapshots/)"
+        );
+    }
+    // A name with a path separator or an extension was meant as a file.
+    if name.contains(std::path::MAIN_SEPARATOR) || path.extension().is_some() {
+        bail!("policy file {name} does not exist");
     }
     bail!(
         "unknown policy `{name}`: use {}, or the path of a snapshot file",
@@ -191,7 +202,11 @@ fn print_summary(summary: &EvalSummary, json: bool) -> anyhow::Result<()> {
     Ok(())
 }
 
-fn main() -> anyhow::Result<()> {
+fn main() -> std::process::ExitCode {
+    tweezer_process::exit_status(run())
+}
+
+fn run() -> anyhow::Result<()> {
     let cli = Cli::parse();
     let mut config = ActorFile::load(cli.config.as_deref())?;
     match cli.command {

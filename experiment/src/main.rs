@@ -40,7 +40,7 @@ enum Command {
         #[arg(long, conflicts_with = "config")]
         preset: Option<String>,
         /// Minutes of training (0: until Ctrl-C) instead of `train.minutes`.
-        #[arg(long)]
+        #[arg(long, allow_negative_numbers = true)]
         minutes: Option<f64>,
         /// Actor processes instead of `train.actors`.
         #[arg(long)]
@@ -99,7 +99,11 @@ enum Command {
 #[global_allocator]
 static ALLOCATOR: mimalloc::MiMalloc = mimalloc::MiMalloc;
 
-fn main() -> anyhow::Result<()> {
+fn main() -> std::process::ExitCode {
+    tweezer_process::exit_status(run())
+}
+
+fn run() -> anyhow::Result<()> {
     let cli = Cli::parse();
     init_logging(cli.log_json);
     match cli.command {
@@ -127,7 +131,17 @@ fn main() -> anyhow::Result<()> {
             if let Some(minutes) = minutes {
                 file.train.minutes = minutes;
             }
-            file.validate()?;
+            file.validate().map_err(|e| match e {
+                // A value given on the command line is blamed on its flag.
+                tweezer_config::ConfigError::Invalid { field, reason }
+                    if (field == "train.actors" && actors.is_some())
+                        || (field == "train.minutes" && minutes.is_some()) =>
+                {
+                    let flag = field.trim_start_matches("train.");
+                    anyhow::anyhow!("--{flag}: {reason}")
+                }
+                other => other.into(),
+            })?;
             if print_config {
                 print!("{}", file.to_toml());
                 return Ok(());
@@ -155,6 +169,12 @@ fn main() -> anyhow::Result<()> {
             batch,
             json,
         } => {
+            if let Some(config) = &cli.config {
+                bail!(
+                    "report reads each run's own train.toml: --config {} does not apply to it (drop it)",
+                    config.display()
+                );
+            }
             if batch == 0 {
                 bail!("--batch must be at least 1");
             }

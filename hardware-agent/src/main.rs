@@ -190,7 +190,11 @@ fn baseline_flag(greedy: bool, planner: bool) -> Option<Baseline> {
     }
 }
 
-fn main() -> anyhow::Result<()> {
+fn main() -> std::process::ExitCode {
+    tweezer_process::exit_status(run())
+}
+
+fn run() -> anyhow::Result<()> {
     let cli = Cli::parse();
     if matches!(cli.command, Command::Serve { .. }) {
         tweezer_process::catch_early_hangups();

@@ -114,7 +114,11 @@ fn with_allocator_options() -> Option<String> {
     Some(format!("cannot re-execute with {OPTION} set: {error}"))
 }
 
-fn main() -> anyhow::Result<()> {
+fn main() -> std::process::ExitCode {
+    tweezer_process::exit_status(run())
+}
+
+fn run() -> anyhow::Result<()> {
     let unset = with_allocator_options();
     let cli = Cli::parse();
     if matches!(cli.command, Command::Serve { .. }) {

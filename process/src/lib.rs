@@ -1,6 +1,8 @@
 //! What every process binary of the workspace shares: logging to stderr,
-//! the signals that stop it, and argument parsers.
+//! how it reports an error, the signals that stop it, and argument
+//! parsers.
 
+use std::process::ExitCode;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex};
 use tracing_subscriber::EnvFilter;
@@ -18,6 +20,37 @@ pub fn init_logging(json: bool) {
     } else {
         builder.init();
     }
+}
+
+/// How a process binary ends: on an error, `error: ` and the message on
+/// stderr, each cause said once, and exit status 1. Never a backtrace,
+/// even with `RUST_BACKTRACE` set: a user's mistake is not a crash.
+pub fn exit_status(result: anyhow::Result<()>) -> ExitCode {
+    match result {
+        Ok(()) => ExitCode::SUCCESS,
+        Err(error) => {
+            eprintln!("error: {}", error_chain(&error));
+            ExitCode::FAILURE
+        }
+    }
+}
+
+/// An error and its causes joined by ": ", each said once: a cause whose
+/// message the text so far already holds (a wrapper that prints its
+/// source) is left out.
+pub fn error_chain(error: &anyhow::Error) -> String {
+    let mut text = String::new();
+    for cause in error.chain() {
+        let message = cause.to_string();
+        if text.contains(&message) {
+            continue;
+        }
+        if !text.is_empty() {
+            text.push_str(": ");
+        }
+        text.push_str(&message);
+    }
+    text
 }
 
 /// SIGINT and SIGTERM (Ctrl-C elsewhere), caught from the moment they are
@@ -130,7 +163,19 @@ pub fn parse_pair(text: &str) -> Result<[f64; 2], String> {
 
 #[cfg(test)]
 mod tests {
-    use super::{StopSignals, parse_pair};
+    use super::{StopSignals, error_chain, parse_pair};
+
+    #[test]
+    fn a_cause_already_in_the_message_is_said_once() {
+        let io = std::io::Error::other("x.token: No such file");
+        let wrapped = anyhow::Error::new(io).context("cannot read x.token: No such file");
+        assert_eq!(error_chain(&wrapped), "cannot read x.token: No such file");
+        let plain = anyhow::anyhow!("disk full").context("cannot write the checkpoint");
+        assert_eq!(
+            error_chain(&plain),
+            "cannot write the checkpoint: disk full"
+        );
+    }
 
     /// A signal sent before anything waits is kept, and named when asked.
     #[cfg(unix)]

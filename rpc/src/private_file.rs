@@ -6,7 +6,13 @@ use std::path::Path;
 
 /// Writes `bytes` to a new file at `path`; refuses to overwrite one.
 pub fn create_private(path: &Path, bytes: &[u8]) -> std::io::Result<()> {
-    write(path, bytes, false)
+    write(path, bytes, false).map_err(|e| match e.kind() {
+        std::io::ErrorKind::AlreadyExists => std::io::Error::new(
+            e.kind(),
+            "the file already exists, and a secret is never overwritten: remove it first, or choose another path",
+        ),
+        _ => e,
+    })
 }
 
 /// Appends `bytes` to the file at `path`, creating it if need be.

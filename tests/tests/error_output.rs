@@ -1,0 +1,136 @@
+//! Every binary reports a user's mistake the same way: `error: ` and what
+//! is wrong, each cause said once, exit status 1, and no backtrace, even
+//! with `RUST_BACKTRACE=1` (a mistake is not a crash).
+
+use std::process::Command;
+use tweezer_system_tests::{binary, output_of};
+
+/// Runs `bin` with `args` and checks that it fails plainly, saying `says`.
+fn fails_plainly(bin: &str, args: &[&str], says: &str) {
+    let output = output_of(
+        Command::new(binary(bin))
+            .args(args)
+            .env("RUST_BACKTRACE", "1")
+            .env("RUST_LOG", "off"),
+    );
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert_eq!(output.status.code(), Some(1), "{bin} {args:?}: {stderr}");
+    assert!(stderr.starts_with("error: "), "{bin} {args:?}: {stderr}");
+    assert_eq!(stderr.matches(says).count(), 1, "{bin} {args:?}: {stderr}");
+    for noise in ["backtrace", "Caused by", "Error:"] {
+        assert!(!stderr.contains(noise), "{bin} {args:?}: {stderr}");
+    }
+}
+
+#[test]
+fn a_missing_file_is_one_plain_message_from_every_binary() {
+    let missing = "/nonexistent/tweezer.toml";
+    for bin in ["actor", "learner", "hardware-agent"] {
+        fails_plainly(
+            bin,
+            &["--config", missing, "config"],
+            "cannot read config file /nonexistent/tweezer.toml",
+        );
+    }
+    fails_plainly(
+        "experiment",
+        &["train", "--config", missing, "--print-config"],
+        "cannot read config file /nonexistent/tweezer.toml",
+    );
+    fails_plainly(
+        "tweezer",
+        &["--security", missing, "learner", "status"],
+        "security file /nonexistent/tweezer.toml",
+    );
+}
+
+#[test]
+fn a_bad_field_is_named_once() {
+    let dir = tempfile::tempdir().unwrap();
+    let file = dir.path().join("agent.toml");
+    std::fs::write(&file, "[camera]\nsource = \"webcam\"\n").unwrap();
+    fails_plainly(
+        "hardware-agent",
+        &["--config", file.to_str().unwrap(), "config"],
+        "unknown variant `webcam`",
+    );
+}
+
+#[test]
+fn report_refuses_a_config_it_would_ignore() {
+    fails_plainly(
+        "experiment",
+        &["--config", "nonexist.toml", "report", "runs/x"],
+        "--config nonexist.toml does not apply",
+    );
+}
+
+#[test]
+fn actor_eval_says_what_is_wrong_with_its_policy_and_batch() {
+    let dir = tempfile::tempdir().unwrap();
+    let dir_name = dir.path().to_str().unwrap();
+    fails_plainly(
+        "actor",
+        &["eval", "--policy", dir_name, "--seeds", "0..1"],
+        "is a directory",
+    );
+    fails_plainly(
+        "actor",
+        &[
+            "eval",
+            "--policy",
+            "runs/x/snapshots/best.safetensors",
+            "--seeds",
+            "0..1",
+        ],
+        "policy file runs/x/snapshots/best.safetensors does not exist",
+    );
+    fails_plainly(
+        "actor",
+        &["eval", "--policy", "gredy", "--seeds", "0..1"],
+        "unknown policy `gredy`",
+    );
+    // Argument errors are clap's: status 2, the flag named.
+    let output = output_of(Command::new(binary("actor")).args(["eval", "--batch", "0"]));
+    assert_eq!(output.status.code(), Some(2));
+    assert!(String::from_utf8_lossy(&output.stderr).contains("--batch"));
+}
+
+#[test]
+fn a_flag_out_of_range_is_blamed_on_the_flag() {
+    fails_plainly(
+        "experiment",
+        &["train", "--minutes", "-1", "--print-config"],
+        "--minutes:",
+    );
+    fails_plainly(
+        "experiment",
+        &["train", "--actors", "100000", "--print-config"],
+        "--actors:",
+    );
+}
+
+#[test]
+fn a_token_is_never_written_over_an_existing_file() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("reader.token");
+    std::fs::write(&out, "keep me\n").unwrap();
+    let tokens = dir.path().join("tokens");
+    fails_plainly(
+        "tweezer",
+        &[
+            "token",
+            "new",
+            "--role",
+            "read",
+            "--name",
+            "reader",
+            "--tokens",
+            tokens.to_str().unwrap(),
+            "--out",
+            out.to_str().unwrap(),
+        ],
+        "already exists, and a secret is never overwritten",
+    );
+    assert_eq!(std::fs::read_to_string(&out).unwrap(), "keep me\n");
+}
