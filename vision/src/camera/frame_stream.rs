@@ -363,8 +363,6 @@ pub struct StreamCamera {
     size: [usize; 2],
     feed: Option<Feed>,
     listener: Option<SocketListener>,
-    /// The sequence number of the last frame handed out.
-    seen: u64,
     captured: Option<Instant>,
     counters: Arc<FrameCounters>,
 }
@@ -402,7 +400,6 @@ impl StreamCamera {
             size: [0, 0],
             feed: None,
             listener,
-            seen: 0,
             captured: None,
             counters,
         };
@@ -468,6 +465,20 @@ impl StreamCamera {
         CameraError::Device(format!("{why}{status}; the next episode {next}"))
     }
 
+    /// Refuses a frame of another size than the first, ending the feed.
+    fn check_size(&mut self, frame: &GrayFrame) -> Result<(), CameraError> {
+        let got = [frame.width(), frame.height()];
+        if got == self.size {
+            return Ok(());
+        }
+        self.end_feed();
+        Err(CameraError::Size {
+            what: format!("from {}", self.source()),
+            got,
+            want: self.size,
+        })
+    }
+
     /// Waits until `deadline` for a frame newer than `after`.
     fn wait_newer(&mut self, after: u64, deadline: Instant) -> Result<GrayFrame, CameraError> {
         let mailbox = self.mailbox().clone();
@@ -476,7 +487,6 @@ impl StreamCamera {
             if mail.sequence > after
                 && let Some((frame, arrived)) = mail.latest.take()
             {
-                self.seen = mail.sequence;
                 self.captured = Some(arrived);
                 return Ok(frame);
             }
@@ -509,15 +519,7 @@ impl Camera for StreamCamera {
         // The first frame to arrive after the step began.
         let after = self.mailbox().lock().sequence;
         let frame = self.wait_newer(after, Instant::now() + self.timeout)?;
-        let got = [frame.width(), frame.height()];
-        if got != self.size {
-            self.end_feed();
-            return Err(CameraError::Size {
-                what: format!("from {}", self.source()),
-                got,
-                want: self.size,
-            });
-        }
+        self.check_size(&frame)?;
         self.counters.frame();
         Ok(frame)
     }
@@ -538,18 +540,10 @@ impl Camera for StreamCamera {
         // Any frame will do: the feed is up. The first sets the size every
         // later frame must have.
         let frame = self.wait_newer(0, deadline)?;
-        let size = [frame.width(), frame.height()];
         if self.size == [0, 0] {
-            self.size = size;
-        } else if size != self.size {
-            self.end_feed();
-            return Err(CameraError::Size {
-                what: format!("from {}", self.source()),
-                got: size,
-                want: self.size,
-            });
+            self.size = [frame.width(), frame.height()];
         }
-        Ok(())
+        self.check_size(&frame)
     }
 }
 
