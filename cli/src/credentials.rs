@@ -1,12 +1,13 @@
 //! `tweezer cert ...` and `tweezer token ...`: the deployment's CA, each
-//! process's certificate, and bearer tokens. Secrets go to files created
-//! readable by their owner only, never to the terminal.
+//! process's certificate, and bearer tokens, and the security files that
+//! name them. Secrets go to files created readable by their owner only,
+//! never to the terminal.
 
 use crate::{CertCommand, TokenCommand};
 use anyhow::{Context, bail};
 use std::path::Path;
 use tweezer_rpc::certs::{Issued, issue, new_ca};
-use tweezer_rpc::{Token, TokenEntry, Tokens, create_private};
+use tweezer_rpc::{SecurityFile, Token, TokenEntry, Tokens, create_private};
 
 /// Runs a `cert` command.
 pub fn cert(command: CertCommand) -> anyhow::Result<()> {
@@ -27,6 +28,7 @@ pub fn cert(command: CertCommand) -> anyhow::Result<()> {
             hosts,
             out,
             days,
+            write_security,
         } => {
             let read = |file: &str| {
                 let path = ca.join(file);
@@ -49,6 +51,12 @@ pub fn cert(command: CertCommand) -> anyhow::Result<()> {
                 out.display(),
                 hosts.join(", ")
             );
+            if let Some(security) = write_security {
+                let cert = out.join(format!("{name}.crt"));
+                let key = out.join(format!("{name}.key"));
+                let ca = ca.join("ca.crt");
+                set_paths(&security, &[("ca", &ca), ("cert", &cert), ("key", &key)])?;
+            }
         }
     }
     Ok(())
@@ -62,6 +70,9 @@ pub fn token(command: TokenCommand) -> anyhow::Result<()> {
             name,
             tokens,
             out,
+            write_security,
+            ca,
+            accepted_by,
         } => {
             let role = role
                 .parse::<tweezer_rpc::Role>()
@@ -78,6 +89,15 @@ pub fn token(command: TokenCommand) -> anyhow::Result<()> {
                 out.display(),
                 tokens.display()
             );
+            if let Some(security) = write_security {
+                let ca = ca.map(|dir| dir.join("ca.crt"));
+                let mut fields = vec![("token_file", out.as_path())];
+                fields.extend(ca.as_deref().map(|ca| ("ca", ca)));
+                set_paths(&security, &fields)?;
+            }
+            for service in accepted_by {
+                set_paths(&service, &[("tokens", &tokens)])?;
+            }
         }
     }
     Ok(())
@@ -99,4 +119,45 @@ fn write_pair(dir: &Path, name: &str, issued: &Issued) -> anyhow::Result<()> {
         .with_context(|| format!("cannot write {}", key.display()))?;
     std::fs::write(&cert, &issued.cert_pem)
         .with_context(|| format!("cannot write {}", cert.display()))
+}
+
+/// Sets path fields of the security file at `security` (created if absent,
+/// every other line kept) and says so. A file in the security file's own
+/// directory is written by name, so the directory moves as one; any other
+/// as an absolute path. The result must still read as a security file.
+fn set_paths(security: &Path, fields: &[(&str, &Path)]) -> anyhow::Result<()> {
+    let written: Vec<(&str, String)> = fields
+        .iter()
+        .map(|(field, file)| Ok((*field, as_written(security, file)?)))
+        .collect::<anyhow::Result<_>>()?;
+    tweezer_config::edit_toml(security, |doc| {
+        for (field, path) in &written {
+            doc[field] = toml_edit::value(path.as_str());
+        }
+        toml::from_str::<SecurityFile>(&doc.to_string())
+            .map(drop)
+            .map_err(|e| format!("not a security file: {e}"))
+    })?;
+    let lines: Vec<String> = written
+        .iter()
+        .map(|(field, path)| format!("{field} = \"{path}\""))
+        .collect();
+    println!("set {} in {}", lines.join(", "), security.display());
+    Ok(())
+}
+
+/// How `file` is named in the security file at `security`.
+fn as_written(security: &Path, file: &Path) -> anyhow::Result<String> {
+    let dir = |path: &Path| {
+        let dir = path.parent().filter(|d| !d.as_os_str().is_empty());
+        dir.unwrap_or(Path::new(".")).canonicalize().ok()
+    };
+    if let (Some(a), Some(b), Some(name)) = (dir(security), dir(file), file.file_name())
+        && a == b
+    {
+        return Ok(name.to_string_lossy().into_owned());
+    }
+    let absolute =
+        std::path::absolute(file).with_context(|| format!("cannot resolve {}", file.display()))?;
+    Ok(absolute.display().to_string())
 }

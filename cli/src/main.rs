@@ -105,6 +105,10 @@ pub enum CertCommand {
         /// Days it is valid.
         #[arg(long, default_value_t = 365)]
         days: u32,
+        /// The security file of the process it is for: `ca`, `cert` and
+        /// `key` are set in it (created if absent; the rest is kept).
+        #[arg(long, value_name = "FILE")]
+        write_security: Option<PathBuf>,
     },
 }
 
@@ -128,6 +132,18 @@ pub enum TokenCommand {
         /// Where the token goes (must not exist).
         #[arg(long, value_name = "FILE")]
         out: PathBuf,
+        /// The security file of the client that sends it: `token_file` is
+        /// set in it (created if absent; the rest is kept).
+        #[arg(long, value_name = "FILE")]
+        write_security: Option<PathBuf>,
+        /// With --write-security: the directory holding the CA's ca.crt,
+        /// set as the client's `ca` (what it checks services against).
+        #[arg(long, value_name = "DIR", requires = "write_security")]
+        ca: Option<PathBuf>,
+        /// The security file of a service that accepts it: `tokens` is set
+        /// in it (repeatable).
+        #[arg(long = "accepted-by", value_name = "FILE")]
+        accepted_by: Vec<PathBuf>,
     },
 }
 

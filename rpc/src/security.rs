@@ -59,7 +59,7 @@ pub enum SecurityError {
         reason: String,
     },
     /// A field that is missing or contradicts another.
-    #[error("{file}: `{field}` {reason}")]
+    #[error("security file {file}: `{field}` {reason}")]
     Field {
         /// The security file.
         file: String,
@@ -73,7 +73,7 @@ pub enum SecurityError {
     Token(#[from] TokenError),
     /// No security file was given.
     #[error(
-        "no security file: pass --security PATH or set {SECURITY_ENV} (see docs/operations.md, Security; `tweezer cert` and `tweezer token` make one)"
+        "no security file: pass --security PATH or set {SECURITY_ENV} (see docs/operations.md, Security; `tweezer cert issue --write-security FILE` and `tweezer token new --write-security FILE` write one)"
     )]
     Missing,
 }
@@ -143,11 +143,27 @@ impl Security {
         }
     }
 
+    /// A file that `field` names and that cannot be read or parsed, blamed
+    /// on the field.
+    fn named_file(&self, field: &'static str, e: TokenError) -> SecurityError {
+        match e {
+            TokenError::File { path, reason } => {
+                self.field(field, format!("names {path}: {reason}"))
+            }
+            other => other.into(),
+        }
+    }
+
     fn read(&self, field: &'static str, path: &Option<PathBuf>) -> Result<Vec<u8>, SecurityError> {
         let path = path
             .as_ref()
             .ok_or_else(|| self.field(field, "is not set".into()))?;
-        std::fs::read(path).map_err(|e| self.field(field, format!("{}: {e}", path.display())))
+        std::fs::read(path).map_err(|e| {
+            self.field(
+                field,
+                format!("names {}, which cannot be read: {e}", path.display()),
+            )
+        })
     }
 
     /// The PEM a service serves with; None when plaintext.
@@ -207,7 +223,7 @@ impl Security {
                     .into(),
             )
         })?;
-        let tokens = Tokens::read(path)?;
+        let tokens = Tokens::read(path).map_err(|e| self.named_file("tokens", e))?;
         if tokens.is_empty() {
             return Err(self.field(
                 "tokens",
@@ -235,7 +251,7 @@ impl Security {
                 format!("is not set and {TOKEN_ENV} is empty: a client needs a token"),
             )
         })?;
-        Ok(Token::read(path)?)
+        Token::read(path).map_err(|e| self.named_file("token_file", e))
     }
 
     /// The file as TOML.

@@ -552,3 +552,121 @@ fn a_sighup_during_start_up_is_a_reload_not_an_exit() {
         Duration::from_millis(20),
     );
 }
+
+/// The operator's path of docs/operations.md: `cert issue` and `token new`
+/// write the security files, which then work as written.
+#[test]
+fn cert_and_token_commands_write_security_files_that_work() {
+    let dir = tempfile::tempdir().unwrap();
+    let pki = dir.path().join("pki");
+    let p = pki.to_str().unwrap();
+    let tweezer = |args: &[&str]| stdout_of(&run("tweezer", args));
+    tweezer(&["cert", "ca", "--out", p, "--days", "2"]);
+    // A file the operator started keeps its lines and comments.
+    let learner_file = pki.join("learner.toml");
+    std::fs::write(
+        &learner_file,
+        "# the learner's\n[listener]\nmax_connections = 64\n",
+    )
+    .unwrap();
+    let learner = learner_file.to_str().unwrap();
+    let out = tweezer(&[
+        "cert",
+        "issue",
+        "--ca",
+        p,
+        "--name",
+        "learner",
+        "--host",
+        "127.0.0.1",
+        "--out",
+        p,
+        "--days",
+        "2",
+        "--write-security",
+        learner,
+    ]);
+    assert!(out.contains("key = \"learner.key\""), "{out}");
+    // Files elsewhere are named by absolute path.
+    let elsewhere = dir.path().join("reader.toml");
+    tweezer(&[
+        "token",
+        "new",
+        "--role",
+        "read",
+        "--name",
+        "reader",
+        "--tokens",
+        &format!("{p}/tokens"),
+        "--out",
+        &format!("{p}/reader.token"),
+        "--write-security",
+        elsewhere.to_str().unwrap(),
+        "--ca",
+        p,
+        "--accepted-by",
+        learner,
+    ]);
+    let text = std::fs::read_to_string(&learner_file).unwrap();
+    for line in [
+        "# the learner's",
+        "max_connections = 64",
+        "ca = \"ca.crt\"",
+        "cert = \"learner.crt\"",
+        "key = \"learner.key\"",
+        "tokens = \"tokens\"",
+    ] {
+        assert!(text.contains(line), "{line}: {text}");
+    }
+    let text = std::fs::read_to_string(&elsewhere).unwrap();
+    assert!(
+        text.contains(&format!("token_file = \"{p}/reader.token\"")),
+        "{text}"
+    );
+    assert!(text.contains(&format!("ca = \"{p}/ca.crt\"")), "{text}");
+
+    let config = learner_config(dir.path());
+    let (child, addr) =
+        tweezer_system_tests::start_learner_with(learner, &config, &dir.path().join("run"), None);
+    let service = Running::new(child);
+    let status = stdout_of(&run(
+        "tweezer",
+        &[
+            "--json",
+            "--security",
+            elsewhere.to_str().unwrap(),
+            "learner",
+            "--learner",
+            &addr,
+            "status",
+        ],
+    ));
+    assert!(status.contains("steps_inserted"), "{status}");
+    assert!(service.stop().0.success());
+
+    // A file that would no longer be a security file is left as it was.
+    let broken = pki.join("broken.toml");
+    std::fs::write(&broken, "plaintext = \"yes\"\n").unwrap();
+    let err = stderr_of_failure(&run(
+        "tweezer",
+        &[
+            "token",
+            "new",
+            "--role",
+            "read",
+            "--name",
+            "other",
+            "--tokens",
+            &format!("{p}/tokens"),
+            "--out",
+            &format!("{p}/other.token"),
+            "--write-security",
+            broken.to_str().unwrap(),
+        ],
+    ));
+    assert!(err.contains("not a security file"), "{err}");
+    assert_eq!(
+        std::fs::read_to_string(&broken).unwrap(),
+        "plaintext = \"yes\"\n"
+    );
+}

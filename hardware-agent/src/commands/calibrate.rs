@@ -1,7 +1,6 @@
 //! `hardware-agent calibrate`: the calibration measured on the instrument
 //! or the twin, printed, and written into a config file's `[stages]`.
 
-use anyhow::Context;
 use std::path::{Path, PathBuf};
 use tweezer_hardware_agent::calibration::{Measured, calibrate};
 use tweezer_hardware_agent::config::AgentConfig;
@@ -72,57 +71,40 @@ fn axis_name(measured: &Measured) -> &'static str {
 /// Sets the calibration in `path`'s `[stages]` table (creating the file
 /// or the table), keeping every other setting and comment.
 fn write_stages(path: &Path, measured: &Measured) -> anyhow::Result<()> {
-    let text = match std::fs::read_to_string(path) {
-        Ok(text) => text,
-        Err(e) if e.kind() == std::io::ErrorKind::NotFound => String::new(),
-        Err(e) => return Err(e).with_context(|| format!("cannot read {}", path.display())),
-    };
-    let mut doc: toml_edit::DocumentMut = text
-        .parse()
-        .with_context(|| format!("{} is not valid TOML", path.display()))?;
-    let stages = doc
-        .entry("stages")
-        .or_insert_with(|| toml_edit::Item::Table(toml_edit::Table::new()))
-        .as_table_mut()
-        .with_context(|| format!("`stages` in {} is not a table", path.display()))?;
-    let round = |v: f64, places: i32| (v * 10f64.powi(places)).round() / 10f64.powi(places);
-    stages["px_per_um"] = toml_edit::value(round(measured.px_per_um, 4));
-    stages["image_x"] = toml_edit::value(axis_name(measured));
-    stages["x_sign"] = toml_edit::value(measured.x_sign);
-    stages["y_sign"] = toml_edit::value(measured.y_sign);
-    // One value serves both stages: the larger play is taken up.
-    stages["backlash_um"] = toml_edit::value(round(
-        measured.backlash_um[0].max(measured.backlash_um[1]),
-        1,
-    ));
-    // The comments above the table stay, but for an older calibration's.
-    let kept: String = stages
-        .decor()
-        .prefix()
-        .and_then(|p| p.as_str())
-        .unwrap_or("\n")
-        .lines()
-        .filter(|line| !line.starts_with(NOTE))
-        .map(|line| format!("{line}\n"))
-        .collect();
-    stages.decor_mut().set_prefix(format!(
-        "{kept}{NOTE} residual {:.2} px over {} moves; backlash X {:.2} µm, Y {:.2} µm.\n",
-        measured.residual_px,
-        measured.moves.len(),
-        measured.backlash_um[0],
-        measured.backlash_um[1]
-    ));
-    // Whole or not at all: a new file renamed over the old.
-    let dir = match path.parent() {
-        Some(dir) if !dir.as_os_str().is_empty() => dir,
-        _ => Path::new("."),
-    };
-    let mut file = tempfile::NamedTempFile::new_in(dir)
-        .with_context(|| format!("cannot write in {}", dir.display()))?;
-    std::io::Write::write_all(&mut file, doc.to_string().as_bytes())
-        .and_then(|()| file.as_file().sync_all())
-        .with_context(|| format!("cannot write {}", path.display()))?;
-    file.persist(path)
-        .with_context(|| format!("cannot write {}", path.display()))?;
+    tweezer_config::edit_toml(path, |doc| {
+        let stages = doc
+            .entry("stages")
+            .or_insert_with(|| toml_edit::Item::Table(toml_edit::Table::new()))
+            .as_table_mut()
+            .ok_or("`stages` is not a table")?;
+        let round = |v: f64, places: i32| (v * 10f64.powi(places)).round() / 10f64.powi(places);
+        stages["px_per_um"] = toml_edit::value(round(measured.px_per_um, 4));
+        stages["image_x"] = toml_edit::value(axis_name(measured));
+        stages["x_sign"] = toml_edit::value(measured.x_sign);
+        stages["y_sign"] = toml_edit::value(measured.y_sign);
+        // One value serves both stages: the larger play is taken up.
+        stages["backlash_um"] = toml_edit::value(round(
+            measured.backlash_um[0].max(measured.backlash_um[1]),
+            1,
+        ));
+        // The comments above the table stay, but for an older calibration's.
+        let kept: String = stages
+            .decor()
+            .prefix()
+            .and_then(|p| p.as_str())
+            .unwrap_or("\n")
+            .lines()
+            .filter(|line| !line.starts_with(NOTE))
+            .map(|line| format!("{line}\n"))
+            .collect();
+        stages.decor_mut().set_prefix(format!(
+            "{kept}{NOTE} residual {:.2} px over {} moves; backlash X {:.2} µm, Y {:.2} µm.\n",
+            measured.residual_px,
+            measured.moves.len(),
+            measured.backlash_um[0],
+            measured.backlash_um[1]
+        ));
+        Ok(())
+    })?;
     Ok(())
 }
