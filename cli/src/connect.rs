@@ -39,14 +39,23 @@ pub async fn health(security: Option<&Path>, address: &str, service: &str) -> an
 }
 
 /// A failed call as an error that names the call and explains the code.
+/// A status the service itself answered with is its own account of what
+/// went wrong (a learner the agent cannot reach, say); one the transport
+/// made (it carries its cause) is about reaching the service.
 pub fn call_error(what: &str, status: tonic::Status) -> anyhow::Error {
     use tonic::Code;
     let message = status.message();
+    let from_transport = std::error::Error::source(&status).is_some();
     let hint = match status.code() {
-        Code::Unavailable => tweezer_rpc::hint(message, false)
+        Code::Unavailable if from_transport => tweezer_rpc::hint(message, false)
             .unwrap_or("the service went away; check that it is still running"),
+        Code::Unavailable => {
+            "the service cannot reach what it needs for that now; try again once it is back"
+        }
         Code::FailedPrecondition => "the service is not in a state to do that now",
-        Code::InvalidArgument => "the request was refused as malformed",
+        Code::InvalidArgument => {
+            "the service refused the request as it stands: change what the message names"
+        }
         Code::NotFound => "no such thing on the service",
         Code::Unauthenticated => {
             "the service does not accept this token: check the security file's token_file or TWEEZER_TOKEN"

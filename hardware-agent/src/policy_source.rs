@@ -186,7 +186,9 @@ pub enum PolicyError {
     #[error("{0}")]
     Config(String),
     /// The learner could not be reached or refused.
-    #[error("cannot fetch the {choice} snapshot from the learner at {address}: {reason}")]
+    #[error(
+        "cannot fetch the {choice} snapshot from the learner at {address} (the agent's `policy.learner`): {reason}"
+    )]
     Learner {
         /// Its address.
         address: String,

@@ -304,7 +304,7 @@ pub fn hint(cause: &str, plaintext: bool) -> Option<&'static str> {
         Some("this client's security file says plaintext = true: the service probably wants TLS")
     } else if has("refused") || has("timed out") || has("dns") {
         Some(
-            "is the service running and listening there? (check the address and its environment variable)",
+            "is the service running and listening there? (check the address, and the flag, environment variable or config field it came from)",
         )
     } else {
         None

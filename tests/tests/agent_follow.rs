@@ -2,7 +2,8 @@
 //! follow }` it picks up each newer snapshot a live learner publishes as
 //! an actor streams to it, between episodes on its twin and never during
 //! one; status, telemetry and episode records name the version that drove
-//! each episode; loading another policy ends following.
+//! each episode; loading another policy ends following. A learner the
+//! agent cannot reach is named as the agent's, not the operator's, problem.
 
 use std::collections::{BTreeMap, BTreeSet};
 use std::process::Command;
@@ -10,8 +11,8 @@ use std::time::{Duration, Instant};
 use tweezer_proto::pb;
 use tweezer_proto::pb::hardware_agent_client::HardwareAgentClient;
 use tweezer_system_tests::{
-    AGENT_CONTROL, Running, binary, connect, credentials, learner_status, output_of,
-    start_configured_agent, start_learner, write,
+    AGENT_CONTROL, Running, binary, connect, credentials, free_port, learner_status, output_of,
+    run, start_configured_agent, start_learner, stderr_of_failure, write,
 };
 
 /// A small set network that publishes often.
@@ -187,4 +188,47 @@ async fn the_agent_follows_a_live_learner_between_episodes() {
     drop(agent);
     let (exit, _) = learner.stop();
     assert!(exit.success());
+}
+
+/// With the learner down, `tweezer agent load --follow best` blames the
+/// agent's `[policy] learner`, not the agent's address or the request;
+/// with the agent down, it points at the agent's address.
+#[test]
+fn a_learner_the_agent_cannot_reach_is_named_as_such() {
+    let dir = tempfile::tempdir().unwrap();
+    let nobody = format!("127.0.0.1:{}", free_port());
+    let agent_config = write(
+        &dir.path().join("agent.toml"),
+        &format!("{AGENT_CONTROL}[policy]\nlearner = \"{nobody}\"\ntimeout_s = 2.0\n"),
+    );
+    let (agent, addr) = start_configured_agent(&agent_config, &[], None);
+    let agent = Running::new(agent);
+    let control = credentials().file("control");
+    let load = |at: &str| {
+        run(
+            "tweezer",
+            &[
+                "--security",
+                &control,
+                "agent",
+                "--agent",
+                at,
+                "load",
+                "--follow",
+                "best",
+            ],
+        )
+    };
+    let err = stderr_of_failure(&load(&addr));
+    assert!(
+        err.contains(&format!("learner at {nobody}"))
+            && err.contains("policy.learner")
+            && err.contains("cannot reach what it needs"),
+        "{err}"
+    );
+    assert!(!err.contains("malformed"), "{err}");
+    drop(agent);
+
+    let err = stderr_of_failure(&load(&nobody));
+    assert!(err.contains("check the address"), "{err}");
 }

@@ -14,7 +14,9 @@ use tweezer_hardware_agent::config::AgentConfig;
 use tweezer_hardware_agent::control::{Ending, EpisodeSummary, StepLog};
 use tweezer_hardware_agent::instrument::Instrument;
 use tweezer_hardware_agent::overlay::OverlaySpec;
-use tweezer_hardware_agent::policy_source::{LoadedPolicy, PolicyChoice, SnapshotChoice};
+use tweezer_hardware_agent::policy_source::{
+    LoadedPolicy, PolicyChoice, PolicyError, SnapshotChoice,
+};
 use tweezer_hardware_agent::record::EpisodeHeader;
 use tweezer_rpc::Security;
 
@@ -34,6 +36,8 @@ pub enum JobError {
     Refused(String),
     /// Never: the request is wrong.
     Invalid(String),
+    /// Not now: something the agent needs (the learner) cannot be reached.
+    Unreachable(String),
 }
 
 type Reply = oneshot::Sender<Result<(), JobError>>;
@@ -143,7 +147,10 @@ impl ControlThread {
             &self.config.env,
             Some(&self.security),
         )
-        .map_err(|e| JobError::Invalid(e.to_string()))
+        .map_err(|e| match e {
+            PolicyError::Learner { .. } => JobError::Unreachable(e.to_string()),
+            _ => JobError::Invalid(e.to_string()),
+        })
         .and_then(|policy| {
             let follower = match choice {
                 PolicyChoice::Follow(tag) => Some(

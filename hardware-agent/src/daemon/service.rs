@@ -58,6 +58,7 @@ impl AgentService {
             Ok(Ok(())) => Ok(()),
             Ok(Err(JobError::Refused(why))) => Err(RpcStatus::failed_precondition(why)),
             Ok(Err(JobError::Invalid(why))) => Err(RpcStatus::invalid_argument(why)),
+            Ok(Err(JobError::Unreachable(why))) => Err(RpcStatus::unavailable(why)),
             Err(_) => Err(RpcStatus::unavailable("the control thread has stopped")),
         }
     }
