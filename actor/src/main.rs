@@ -4,7 +4,6 @@
 
 mod act;
 mod bench;
-mod config;
 mod prometheus_metrics;
 mod stream;
 
@@ -12,13 +11,13 @@ use anyhow::{Context, bail};
 use burn::tensor::Device;
 use clap::builder::TypedValueParser as _;
 use clap::{Parser, Subcommand};
-use config::ActorFile;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::sync::atomic::AtomicBool;
 use std::time::Duration;
+use tweezer_actor::config::ActorFile;
 use tweezer_gym::{Baseline, EnvConfig, EvalSummary, Policy, Seeds, evaluate};
-use tweezer_nets::NetworkPolicy;
+use tweezer_nets::{NetworkPolicy, PolicyFileError, SnapshotError};
 use tweezer_process::init_logging;
 
 /// Tweezer RL actor: steps virtual optical-tweezers environments.
@@ -124,6 +123,39 @@ enum Command {
     },
 }
 
+/// The policy in snapshot file `path`. A snapshot of another environment
+/// (a CNN of another resolution) is refused naming the config that fits
+/// it: the `actor.toml` of the run whose `snapshots/` hold it.
+fn snapshot_policy(path: &Path, env: &EnvConfig) -> anyhow::Result<NetworkPolicy> {
+    match NetworkPolicy::from_file(path, env, &Device::flex()) {
+        Ok((policy, _)) => Ok(policy),
+        Err(
+            e @ PolicyFileError::Snapshot {
+                source: SnapshotError::Mismatch { .. },
+                ..
+            },
+        ) => {
+            // A run directory holds `snapshots/` and the actors' `actor.toml`.
+            let run = path
+                .parent()
+                .filter(|dir| dir.file_name().is_some_and(|n| n == "snapshots"))
+                .and_then(Path::parent)
+                .map_or_else(
+                    || "RUN".into(),
+                    |run| match run.as_os_str().is_empty() {
+                        true => ".".into(),
+                        false => run.display().to_string(),
+                    },
+                );
+            let hint = format!(
+                "evaluate it with the config of the run that trained it: --config {run}/actor.toml"
+            );
+            bail!("{e}; {hint}")
+        }
+        Err(e) => Err(e.into()),
+    }
+}
+
 /// A baseline's name, or the path of a snapshot file.
 fn policy_named(name: &str, env: &EnvConfig) -> anyhow::Result<Box<dyn Policy>> {
     if let Some(baseline) = Baseline::named(name) {
@@ -131,8 +163,7 @@ fn policy_named(name: &str, env: &EnvConfig) -> anyhow::Result<Box<dyn Policy>> 
     }
     let path = Path::new(name);
     if path.is_file() {
-        let (policy, _) = NetworkPolicy::from_file(path, env, &Device::flex())?;
-        return Ok(Box::new(policy));
+        return Ok(Box::new(snapshot_policy(path, env)?));
     }
     if path.is_dir() {
         bail!(
@@ -290,7 +321,7 @@ fn run() -> anyhow::Result<()> {
             observations,
             batch,
         } => {
-            let (mut policy, _) = NetworkPolicy::from_file(&policy, &config.env, &Device::flex())?;
+            let mut policy = snapshot_policy(&policy, &config.env)?;
             let stdout = std::io::stdout().lock();
             match observations {
                 Some(path) => {

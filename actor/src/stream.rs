@@ -10,7 +10,6 @@
 //! recognises a resent batch by its session (a random number drawn at start)
 //! and sequence number, and stores it once.
 
-use crate::config::ActorFile;
 use anyhow::Context;
 use burn::tensor::Device;
 use serde::Serialize;
@@ -20,6 +19,7 @@ use std::sync::mpsc;
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 use tokio::runtime::Runtime;
+use tweezer_actor::config::ActorFile;
 use tweezer_gym::{Action, Outcome, Planner, Policy, SplitMix64, UniformRandom, VecEnv};
 use tweezer_nets::NetworkPolicy;
 use tweezer_process::StopSignals;

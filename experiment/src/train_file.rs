@@ -4,6 +4,7 @@
 use crate::sweep::SweepConfig;
 use serde::{Deserialize, Serialize};
 use std::path::Path;
+use tweezer_actor::config::ActorConfig;
 use tweezer_config::{ConfigError, read_toml};
 use tweezer_gym::{EnvConfig, Seeds};
 use tweezer_learner::config::LearnerConfig;
@@ -28,7 +29,7 @@ pub struct TrainFile {
     /// The learner.
     pub learner: LearnerConfig,
     /// Each actor's `[actor]` table; `learner`, `id` and `seed` are set per
-    /// actor. The actor process validates it.
+    /// actor. Checked here as the actor reads it, before anything starts.
     pub actor: toml::Table,
     /// The run itself.
     pub train: TrainConfig,
@@ -109,6 +110,10 @@ impl TrainFile {
                 reason: "is set by `experiment train` for each actor; remove it".into(),
             });
         }
+        let actor: ActorConfig = toml::Value::Table(self.actor.clone())
+            .try_into()
+            .map_err(|e: toml::de::Error| ConfigError::invalid("actor", e.message()))?;
+        actor.validate().map_err(|e| e.in_table("actor"))?;
         self.train.validate().map_err(|e| e.in_table("train"))?;
         if !self.sweep.is_empty() {
             self.sweep.runs(self)?;
@@ -212,6 +217,9 @@ mod tests {
                 "train.validation_seeds",
             ),
             ("[actor]\nid = \"a\"\n", "actor.id"),
+            ("[actor]\nenvz = 4\n", "unknown field `envz`"),
+            ("[actor]\nenvs = 0\n", "actor.envs"),
+            ("[actor]\ndemonstrators = 99\n", "actor.demonstrators"),
             ("[learner.td3]\ngamma = 2.0\n", "learner.td3.gamma"),
         ] {
             std::fs::write(&path, text).unwrap();

@@ -265,7 +265,14 @@ impl EnvConfig {
         finite("rewards.carry", self.rewards.carry)?;
         finite("rewards.collision", self.rewards.collision)?;
         finite("rewards.success", self.rewards.success)?;
-        self.image.validate(self.fov_px)
+        // A mismatch is blamed on the field the user set: with the default
+        // image, that is the field of view.
+        self.image.validate(self.fov_px).map_err(|e| match e {
+            ConfigError::Invalid { reason, .. } if self.image == ImageConfig::default() => {
+                ConfigError::invalid("fov_px", format!("{reason} (the default [env.image])"))
+            }
+            other => other,
+        })
     }
 
     /// Sphere radius in px.
@@ -334,11 +341,22 @@ impl ImageConfig {
         if u64::from(self.width) * u64::from(fov_px[1])
             != u64::from(self.height) * u64::from(fov_px[0])
         {
+            // The nearest fitting image of the same width, if there is one.
+            let scaled = u64::from(self.width) * u64::from(fov_px[1]);
+            let fitting = if scaled.is_multiple_of(u64::from(fov_px[0])) {
+                format!(
+                    " (such as {}x{})",
+                    self.width,
+                    scaled / u64::from(fov_px[0])
+                )
+            } else {
+                String::new()
+            };
             return Err(ConfigError::invalid(
                 "image",
                 format!(
-                    "{}x{} does not have the field of view's aspect ratio {}:{}",
-                    self.width, self.height, fov_px[0], fov_px[1]
+                    "the image's {}x{} pixels and the {}x{} px field of view (fov_px) differ in aspect ratio, so pixels would not be square: give [env.image] width and height in the ratio {}:{}{fitting}",
+                    self.width, self.height, fov_px[0], fov_px[1], fov_px[0], fov_px[1]
                 ),
             ));
         }

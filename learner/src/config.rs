@@ -34,6 +34,20 @@ impl LearnerFile {
         Ok(config)
     }
 
+    /// The config of the run in `dir`, as its learner wrote it; a
+    /// directory without one is said not to be a run directory.
+    pub fn of_run(dir: &Path) -> anyhow::Result<Self> {
+        let path = crate::run_dir::RunDir::new(dir).config();
+        if !path.is_file() {
+            anyhow::bail!(
+                "{} is not a run directory: it has no {} (a learner writes one when it starts a run)",
+                dir.display(),
+                path.file_name().unwrap_or_default().to_string_lossy()
+            );
+        }
+        Ok(Self::load(Some(&path))?)
+    }
+
     /// Checks every field; the error names the first one out of range.
     pub fn validate(&self) -> Result<(), ConfigError> {
         validate_tables(&self.env, &self.learner)
@@ -178,13 +192,53 @@ impl LearnerConfig {
 
 /// The `[learner.network]` table: the paper's CNN (the default) or the
 /// set network that reads sphere centres.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Serialize)]
 #[serde(tag = "kind", rename_all = "snake_case")]
 pub enum NetworkConfig {
     /// The paper's CNN on images of `env.image`'s resolution.
     Paper,
     /// The set network on the centres of `env.fov_px`.
     Set(SetNetworkConfig),
+}
+
+/// Read by `kind` first, then the rest as that kind's fields, one by one:
+/// serde's own reading of a tagged table reports a bad field at the table's
+/// first line without naming it; this names it
+/// (`learner.network.sphere_hidden`).
+impl<'de> Deserialize<'de> for NetworkConfig {
+    fn deserialize<D: serde::Deserializer<'de>>(deserializer: D) -> Result<Self, D::Error> {
+        use serde::de::Error;
+        let mut table = toml::Table::deserialize(deserializer)?;
+        let kind = table
+            .remove("kind")
+            .ok_or_else(|| D::Error::custom("`kind` is missing: \"paper\" (the CNN) or \"set\""))?;
+        match kind.as_str() {
+            Some("paper") => match table.keys().next() {
+                None => Ok(Self::Paper),
+                Some(key) => Err(D::Error::custom(format!(
+                    "`{key}` is a set network's field, and kind = \"paper\" takes none"
+                ))),
+            },
+            Some("set") => {
+                // Field by field first, so that an error can name its field.
+                for (key, value) in &table {
+                    let one = toml::Table::from_iter([(key.clone(), value.clone())]);
+                    if let Err(e) = SetNetworkConfig::deserialize(toml::Value::Table(one)) {
+                        return Err(D::Error::custom(format!(
+                            "learner.network.{key}: {}",
+                            e.message()
+                        )));
+                    }
+                }
+                SetNetworkConfig::deserialize(toml::Value::Table(table))
+                    .map(Self::Set)
+                    .map_err(|e| D::Error::custom(e.message()))
+            }
+            _ => Err(D::Error::custom(format!(
+                "kind = {kind} is not \"paper\" or \"set\""
+            ))),
+        }
+    }
 }
 
 /// The set network's hyper-parameters.

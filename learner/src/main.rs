@@ -6,7 +6,6 @@ use clap::{Parser, Subcommand};
 use std::net::SocketAddr;
 use std::path::PathBuf;
 use tweezer_learner::config::LearnerFile;
-use tweezer_learner::run_dir::RunDir;
 use tweezer_learner::serve::{Start, serve};
 use tweezer_process::init_logging;
 
@@ -137,12 +136,10 @@ fn run() -> anyhow::Result<()> {
             auto_resume,
             security,
         } => {
-            let path = match (&cli.config, &resume) {
-                (Some(path), _) => Some(path.clone()),
-                (None, Some(dir)) => Some(RunDir::new(dir).config()),
-                (None, None) => None,
+            let mut file = match (&cli.config, &resume) {
+                (None, Some(dir)) => LearnerFile::of_run(dir)?,
+                (path, _) => LearnerFile::load(path.as_deref())?,
             };
-            let mut file = LearnerFile::load(path.as_deref())?;
             if let Some(dir) = resume.clone().or(run_dir) {
                 file.learner.run_dir = dir;
             }

@@ -3,7 +3,7 @@
 //! with `RUST_BACKTRACE=1` (a mistake is not a crash).
 
 use std::process::Command;
-use tweezer_system_tests::{binary, output_of};
+use tweezer_system_tests::{binary, output_of, write};
 
 /// Runs `bin` with `args` and checks that it fails plainly, saying `says`.
 fn fails_plainly(bin: &str, args: &[&str], says: &str) {
@@ -133,4 +133,62 @@ fn a_token_is_never_written_over_an_existing_file() {
         "already exists, and a secret is never overwritten",
     );
     assert_eq!(std::fs::read_to_string(&out).unwrap(), "keep me\n");
+}
+
+#[test]
+fn a_bad_field_is_blamed_on_the_field_the_user_set() {
+    let dir = tempfile::tempdir().unwrap();
+    let file = |name: &str, text: &str| write(&dir.path().join(name), text);
+    let pooling = file(
+        "pooling.toml",
+        "[learner.network]\nkind = \"set\"\npooling = \"sum\"\n",
+    );
+    fails_plainly(
+        "learner",
+        &["--config", &pooling, "config"],
+        "learner.network.pooling: unknown variant `sum`",
+    );
+    let fov = file("fov.toml", "[env]\nfov_px = [1280, 1000]\n");
+    for bin in ["learner", "actor"] {
+        fails_plainly(bin, &["--config", &fov, "config"], "`env.fov_px`");
+    }
+    // The train file's [actor] table is checked before anything starts.
+    let train = file("train.toml", "[actor]\nenvz = 4\n");
+    let out = dir.path().join("run");
+    fails_plainly(
+        "experiment",
+        &["train", "--config", &train, "--out", out.to_str().unwrap()],
+        "unknown field `envz`",
+    );
+    assert!(!out.exists(), "no run directory is made");
+}
+
+#[test]
+fn resuming_what_is_not_a_run_says_so() {
+    let dir = tempfile::tempdir().unwrap();
+    let nodir = dir.path().join("nodir");
+    fails_plainly(
+        "learner",
+        &["serve", "--resume", nodir.to_str().unwrap()],
+        "is not a run directory",
+    );
+}
+
+#[test]
+fn a_missing_token_file_is_blamed_on_the_security_file() {
+    let dir = tempfile::tempdir().unwrap();
+    let security = dir.path().join("client.toml");
+    std::fs::write(&security, "plaintext = true\ntoken_file = \"gone.token\"\n").unwrap();
+    fails_plainly(
+        "tweezer",
+        &[
+            "--security",
+            security.to_str().unwrap(),
+            "learner",
+            "--learner",
+            "127.0.0.1:9",
+            "status",
+        ],
+        "`token_file` names",
+    );
 }

@@ -1,5 +1,5 @@
 //! `actor eval` runs a policy snapshot file, and refuses one that does not
-//! fit the configured resolution.
+//! fit the configured resolution, naming the config that fits it.
 
 use burn::tensor::Device;
 use tweezer_nets::{ActorConfig, Architecture, EncoderConfig, SnapshotInfo, encode};
@@ -46,6 +46,24 @@ fn snapshots_are_evaluated_and_mismatches_refused() {
         err.contains("height 64 vs 256") && err.contains("width 80 vs 320"),
         "{err}"
     );
+    assert!(err.contains("--config RUN/actor.toml"), "{err}");
+    // In a run directory, the hint names that run's config.
+    let run_dir = dir.path().join("run");
+    std::fs::create_dir_all(run_dir.join("snapshots")).unwrap();
+    let in_run = run_dir.join("snapshots/v000001.safetensors");
+    std::fs::copy(snapshot, &in_run).unwrap();
+    let err = stderr_of_failure(&run(
+        "actor",
+        &[
+            "eval",
+            "--policy",
+            in_run.to_str().unwrap(),
+            "--seeds",
+            "0..2",
+        ],
+    ));
+    let hint = format!("--config {}/actor.toml", run_dir.display());
+    assert!(err.contains(&hint), "{err}");
 
     let garbage = dir.path().join("garbage.safetensors");
     std::fs::write(&garbage, b"not a snapshot at all").unwrap();
