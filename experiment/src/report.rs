@@ -3,7 +3,8 @@
 //! averaged in Fig. 4; each run's snapshot — the best of its kept ones on
 //! validation seeds, or the one published at its best rolling return — is
 //! evaluated on held-out seeds next to the greedy and planner baselines;
-//! the best of them is drawn (Figs. 5, 6).
+//! the best of them is drawn (Figs. 5, 6). The evaluated snapshot is kept
+//! as the run's `snapshots/chosen.safetensors`.
 
 use crate::train_file::TrainFile;
 use anyhow::Context;
@@ -14,6 +15,7 @@ use std::path::{Path, PathBuf};
 use tweezer_figures::{Curve, RewardFigure, draw_episodes, reward_figure};
 use tweezer_gym::{Baseline, EnvConfig, EvalSummary, evaluate};
 use tweezer_learner::config::LearnerFile;
+use tweezer_learner::durable_write::write_atomic;
 use tweezer_learner::run_dir::RunDir;
 use tweezer_nets::NetworkPolicy;
 
@@ -77,8 +79,7 @@ struct Run {
 impl Run {
     fn read(dir: &Path) -> anyhow::Result<Self> {
         let run = RunDir::new(dir);
-        let config = LearnerFile::load(Some(&run.config()))
-            .with_context(|| format!("{} is not a run directory", dir.display()))?;
+        let config = LearnerFile::of_run(dir)?;
         let label = run_label(dir)?;
         let returns = episode_returns(&run.run_log())?;
         Ok(Self {
@@ -167,6 +168,20 @@ struct Chosen {
     how: String,
     policy: NetworkPolicy,
     version: u64,
+}
+
+/// Copies the reported snapshot to the run's `snapshots/chosen.safetensors`
+/// (atomically: a reader sees the old copy or the new one), so that the
+/// file the table quotes has a name that outlives the learner's pruning.
+fn keep_chosen(run: &Path, snapshot: &Path) -> anyhow::Result<PathBuf> {
+    let chosen = RunDir::new(run).chosen_snapshot();
+    let copy = || -> std::io::Result<()> {
+        let mut source = std::fs::File::open(snapshot)?;
+        write_atomic(&chosen, |w| std::io::copy(&mut source, w).map(drop))
+    };
+    copy()
+        .with_context(|| format!("cannot copy {} to {}", snapshot.display(), chosen.display()))?;
+    Ok(chosen)
 }
 
 /// The run's label from its train file, or the directory's name.
@@ -259,6 +274,7 @@ pub fn write(runs: &[PathBuf], out: &Path, options: &ReportOptions) -> anyhow::R
             tracing::warn!(run = %run.dir.display(), "no best snapshot yet: not evaluated");
             continue;
         };
+        files.push(keep_chosen(&run.dir, &chosen.path)?);
         let summary = EvalSummary::of(&evaluate(
             &run.env,
             &mut chosen.policy,

@@ -47,6 +47,14 @@ impl RunDir {
         self.snapshots().join(crate::snapshots::BEST_FILE)
     }
 
+    /// `snapshots/chosen.safetensors`: a copy of the snapshot `experiment
+    /// report` last evaluated for this run (the best of the kept ones on
+    /// validation seeds, or `best`), under a name that stays put for the
+    /// notebook and the microscope.
+    pub fn chosen_snapshot(&self) -> PathBuf {
+        self.snapshots().join("chosen.safetensors")
+    }
+
     /// `checkpoints/`: the learner's checkpoints.
     pub fn checkpoints(&self) -> PathBuf {
         self.0.join("checkpoints")

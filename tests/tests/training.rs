@@ -248,6 +248,15 @@ fn sigint_stops_a_one_command_run_with_a_loadable_final_checkpoint() {
     ] {
         assert!(out.join(file).is_file(), "{file}");
     }
+    // The evaluated snapshot is kept under a name that stays put.
+    let evaluated = std::fs::read(rows[0]["snapshot"].as_str().unwrap()).unwrap();
+    let chosen = out.join("snapshots/chosen.safetensors");
+    assert_eq!(std::fs::read(&chosen).unwrap(), evaluated);
+    let files = outcome["report"]["files"].as_array().unwrap();
+    assert!(
+        files.iter().any(|f| f == chosen.to_str().unwrap()),
+        "{outcome}"
+    );
 
     // The final checkpoint loads: a resumed learner has every update.
     let (updates, steps) = newest_checkpoint(&out.join("checkpoints")).expect("a final checkpoint");
