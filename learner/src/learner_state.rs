@@ -6,10 +6,11 @@
 
 use crate::checkpoint::SessionState;
 use crate::episodes::{Episode, Episodes, Rolling};
-use crate::limiter::{LimiterState, SharedLimiter};
+use crate::limiter::{Limiter, LimiterState};
 use crate::replay::{Replay, Source};
 use crate::run_log::RunLog;
 use crate::snapshots::Snapshots;
+use crate::table::{ReplayGuard, Table};
 use std::collections::HashMap;
 use std::sync::atomic::{AtomicBool, AtomicU32, AtomicU64, Ordering};
 use std::sync::{Mutex, MutexGuard};
@@ -290,9 +291,7 @@ pub struct Captured {
 /// The learner's shared state.
 #[derive(Debug)]
 pub struct LearnerState {
-    replay: Mutex<Replay>,
-    /// `None` while learning is paused: inserts are not rate limited.
-    limiter: Option<SharedLimiter>,
+    table: Table,
     bounds: StepBounds,
     actors: Mutex<Registry>,
     episodes: Mutex<Episodes>,
@@ -345,12 +344,12 @@ fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
 }
 
 impl LearnerState {
-    /// Ingestion into `replay`, rate limited by `limiter` when given; no
-    /// snapshots, no metrics, actors told to explore uniformly throughout.
-    pub fn new(replay: Replay, limiter: Option<SharedLimiter>, bounds: StepBounds) -> Self {
+    /// Ingestion into `replay`, rate limited by `limiter` when given
+    /// (without one, nothing is learned: ingest alone); no snapshots, no
+    /// metrics, actors told to explore uniformly throughout.
+    pub fn new(replay: Replay, limiter: Option<Limiter>, bounds: StepBounds) -> Self {
         Self {
-            replay: Mutex::new(replay),
-            limiter,
+            table: Table::new(replay, limiter),
             bounds,
             actors: Mutex::new(Registry::new()),
             episodes: Mutex::new(Episodes::default()),
@@ -421,19 +420,19 @@ impl LearnerState {
         self
     }
 
-    /// The replay.
-    pub fn replay(&self) -> MutexGuard<'_, Replay> {
-        lock(&self.replay)
+    /// The replay and its rate limiter.
+    pub fn table(&self) -> &Table {
+        &self.table
     }
 
-    /// The rate limiter, unless learning is paused.
-    pub fn limiter(&self) -> Option<&SharedLimiter> {
-        self.limiter.as_ref()
+    /// The replay, held for reading.
+    pub fn replay(&self) -> ReplayGuard<'_> {
+        self.table.replay()
     }
 
-    /// What the rate limiter is doing; `None` while learning is paused.
+    /// What the rate limiter is doing; `None` without one.
     pub fn limiter_state(&self) -> Option<LimiterState> {
-        self.limiter.as_ref().map(|l| l.snapshot().1)
+        self.table.limiter().map(|(_, state)| state)
     }
 
     /// The status, read now.
@@ -718,18 +717,8 @@ impl LearnerState {
             self.duplicates.fetch_add(1, Ordering::Relaxed);
             return Ok(self.ack(sequence));
         }
-        if let Some(limiter) = &self.limiter {
-            while !limiter.wait_to_insert(steps.len() as u64, Duration::from_millis(100)) {
-                if closed() {
-                    return Err(Refusal::Closed);
-                }
-                if self.stopping() {
-                    return Err(Refusal::ShuttingDown);
-                }
-            }
-        }
-        // Labelled before the replay is locked: the planner takes about
-        // 0.1 ms an observation.
+        // Labelled before the table is held: the planner takes about 0.1 ms
+        // an observation.
         let guides: Vec<Option<[f32; 2]>> = match &self.guide {
             Some(planner) => {
                 let mut planner = planner.clone();
@@ -739,44 +728,69 @@ impl LearnerState {
             }
             None => vec![None; steps.len()],
         };
-        let mut finished: Vec<Episode> = Vec::new();
-        let len = {
-            let mut replay = self.replay();
-            let mut registry = lock(&self.actors);
-            let known = registry
-                .entry(&key, token)
-                .ok_or(Refusal::TooManySessions)?;
-            if known.stored(session, sequence) {
-                // Another stream of the same session stored it meanwhile.
-                self.duplicates.fetch_add(1, Ordering::Relaxed);
-                return Ok(self.ack(sequence));
+        let give_up = || {
+            if closed() {
+                Some(Refusal::Closed)
+            } else if self.stopping() {
+                Some(Refusal::ShuttingDown)
+            } else {
+                None
             }
-            known.last_sequence = Some(sequence);
-            let source = known.source;
-            let mut episodes = self.episodes();
-            for (step, guide) in steps.iter().zip(guides) {
-                replay
-                    .insert_guided(source, step, guide)
-                    .expect("steps were checked against the replay's limits");
-                finished.extend(episodes.step(source, step));
-            }
-            known.steps += steps.len() as u64;
-            known.episodes += finished.len() as u64;
-            let now = Instant::now();
-            known.last_stored = Some(now);
-            known.last_seen = now;
-            drop(registry);
-            self.steps_inserted
-                .fetch_add(steps.len() as u64, Ordering::Relaxed);
-            replay.len()
         };
-        if let Some(limiter) = &self.limiter {
-            limiter.replay_len(len);
-        }
+        // One transaction: the limiter counts the batch only if it is
+        // stored, so a duplicate found here costs the ratio nothing.
+        let stored = self.table.insert(
+            steps.len() as u64,
+            Duration::from_millis(100),
+            give_up,
+            |replay| self.store(replay, &key, token, sequence, &steps, guides),
+        )?;
+        let Some(finished) = stored else {
+            // Another stream of the same session stored it meanwhile.
+            self.duplicates.fetch_add(1, Ordering::Relaxed);
+            return Ok(self.ack(sequence));
+        };
         for episode in finished {
             self.run_log.write("episode", episode);
         }
         Ok(self.ack(sequence))
+    }
+
+    /// Stores a batch in `replay` (the table held) and accounts for it: the
+    /// session's last sequence, steps and episodes; `None` when the session
+    /// has stored it already.
+    fn store(
+        &self,
+        replay: &mut Replay,
+        key: &SessionKey,
+        token: Option<&str>,
+        sequence: u64,
+        steps: &[StepRecord],
+        guides: Vec<Option<[f32; 2]>>,
+    ) -> Result<Option<Vec<Episode>>, Refusal> {
+        let mut registry = lock(&self.actors);
+        let known = registry.entry(key, token).ok_or(Refusal::TooManySessions)?;
+        if known.stored(key.1, sequence) {
+            return Ok(None);
+        }
+        known.last_sequence = Some(sequence);
+        let source = known.source;
+        let mut episodes = self.episodes();
+        let mut finished = Vec::new();
+        for (step, guide) in steps.iter().zip(guides) {
+            replay
+                .insert_guided(source, step, guide)
+                .expect("steps were checked against the replay's limits");
+            finished.extend(episodes.step(source, step));
+        }
+        known.steps += steps.len() as u64;
+        known.episodes += finished.len() as u64;
+        let now = Instant::now();
+        known.last_stored = Some(now);
+        known.last_seen = now;
+        self.steps_inserted
+            .fetch_add(steps.len() as u64, Ordering::Relaxed);
+        Ok(Some(finished))
     }
 
     fn stored_before(&self, key: &SessionKey, sequence: u64) -> bool {

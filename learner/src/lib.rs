@@ -25,6 +25,7 @@ pub mod run_log;
 pub mod serve;
 pub mod service;
 pub mod snapshots;
+pub mod table;
 pub mod td3;
 pub mod tensorboard;
 pub mod trainer;

@@ -4,11 +4,11 @@
 //! instead of unbounded queues); updates wait when the actors fall behind.
 //!
 //! Counts are kept relative to a *base* that a restored learner resets, so
-//! restored counters can never leave both sides waiting on each other.
+//! restored counters can never leave both sides waiting on each other. The
+//! decisions are here; the waiting is the [`Table`](crate::table::Table)'s,
+//! which holds the limiter with the replay it limits.
 
 use serde::{Deserialize, Serialize};
-use std::sync::{Condvar, Mutex, MutexGuard};
-use std::time::Duration;
 use tweezer_config::ConfigError;
 
 /// The limiter's settings.
@@ -175,76 +175,5 @@ impl Limiter {
         } else {
             LimiterState::Flowing
         }
-    }
-}
-
-/// A limiter shared between inserting threads and the learner thread.
-#[derive(Debug)]
-pub struct SharedLimiter {
-    inner: Mutex<(Limiter, usize)>,
-    changed: Condvar,
-}
-
-impl SharedLimiter {
-    /// A shared limiter; `replay_len` is the replay's size now.
-    pub fn new(limiter: Limiter, replay_len: usize) -> Self {
-        Self {
-            inner: Mutex::new((limiter, replay_len)),
-            changed: Condvar::new(),
-        }
-    }
-
-    fn lock(&self) -> MutexGuard<'_, (Limiter, usize)> {
-        self.inner
-            .lock()
-            .unwrap_or_else(|poisoned| poisoned.into_inner())
-    }
-
-    /// Waits up to `timeout` until `n` transitions may be inserted, and on
-    /// `true` counts them at once, so concurrent producers cannot all pass
-    /// on the same credit. The caller then stores them and reports the
-    /// replay's new size with [`Self::replay_len`].
-    pub fn wait_to_insert(&self, n: u64, timeout: Duration) -> bool {
-        let guard = self.lock();
-        let (mut guard, result) = self
-            .changed
-            .wait_timeout_while(guard, timeout, |(l, len)| !l.can_insert(n, *len))
-            .unwrap_or_else(|poisoned| poisoned.into_inner());
-        if result.timed_out() {
-            return false;
-        }
-        guard.0.inserted(n);
-        drop(guard);
-        self.changed.notify_all();
-        true
-    }
-
-    /// Reports the replay's size after an insert.
-    pub fn replay_len(&self, replay_len: usize) {
-        self.lock().1 = replay_len;
-        self.changed.notify_all();
-    }
-
-    /// Waits up to `timeout` until an update may run.
-    pub fn wait_to_update(&self, timeout: Duration) -> bool {
-        let guard = self.lock();
-        let (guard, result) = self
-            .changed
-            .wait_timeout_while(guard, timeout, |(l, len)| !l.can_update(*len))
-            .unwrap_or_else(|poisoned| poisoned.into_inner());
-        drop(guard);
-        !result.timed_out()
-    }
-
-    /// Records one update.
-    pub fn updated(&self) {
-        self.lock().0.updated();
-        self.changed.notify_all();
-    }
-
-    /// The counters and state.
-    pub fn snapshot(&self) -> (LimiterCounts, LimiterState) {
-        let guard = self.lock();
-        (guard.0.counts(), guard.0.state(guard.1))
     }
 }

@@ -9,7 +9,7 @@ use crate::checkpoint::{Checkpoints, Loaded};
 use crate::config::LearnerFile;
 use crate::durable_write::{remove_leftovers, write_bytes_atomic};
 use crate::learner_state::LearnerState;
-use crate::limiter::{Limiter, SharedLimiter};
+use crate::limiter::Limiter;
 use crate::prometheus_metrics::prometheus;
 use crate::replay::Replay;
 use crate::run_dir::RunDir;
@@ -213,9 +213,7 @@ fn shared_state(
         Some(bytes) => Replay::decode(config.replay.clone(), bytes)?,
         None => Replay::new(config.replay.clone()),
     };
-    let mut limiter = Limiter::new(config.limiter.clone());
-    limiter.rebase(replay.len());
-    let limiter = SharedLimiter::new(limiter, replay.len());
+    let limiter = Limiter::new(config.limiter.clone());
     let run_log = RunLog::append(&run_dir.run_log(), "learner")
         .with_context(|| format!("cannot open {}", run_dir.run_log().display()))?;
     let shared = LearnerState::new(replay, Some(limiter), StepBounds::for_config(&file.env))

@@ -221,8 +221,8 @@ impl<N: Networks> Trainer<N> {
             }
             let may_update = self
                 .shared
-                .limiter()
-                .is_some_and(|l| l.wait_to_update(Duration::from_millis(100)));
+                .table()
+                .wait_to_update(Duration::from_millis(100));
             if may_update && self.update()? {
                 let updates = self.td3.updates();
                 if updates.is_multiple_of(config.metrics_every_updates) {
@@ -262,9 +262,7 @@ impl<N: Networks> Trainer<N> {
         )?;
         let batch = minibatch_tensors(&sampled, self.td3.networks(), &self.device);
         let stats = self.td3.update(batch);
-        if let Some(limiter) = self.shared.limiter() {
-            limiter.updated();
-        }
+        self.shared.table().updated();
         let diverged_at = self.td3.updates();
         let verdict = self.guard.check(&mut self.td3, &stats);
         if verdict != Verdict::Finite {

@@ -2,9 +2,11 @@
 //! threads with 1 and 8 producers.
 
 use std::sync::Arc;
-use std::sync::atomic::{AtomicU64, Ordering};
 use std::time::{Duration, Instant};
-use tweezer_learner::limiter::{Limiter, LimiterConfig, LimiterState, SharedLimiter};
+use tweezer_gym::{Action, Observation, StepRecord};
+use tweezer_learner::limiter::{Limiter, LimiterConfig, LimiterState};
+use tweezer_learner::replay::{Replay, ReplayConfig};
+use tweezer_learner::table::Table;
 
 fn config(ratio: f64, min_size: usize, slack: f64) -> LimiterConfig {
     LimiterConfig {
@@ -85,26 +87,43 @@ fn bad_settings_are_named() {
     }
 }
 
-/// Producers insert batches through the shared limiter while one learner
-/// thread updates; the ratio must hold throughout and everything finish.
+/// Step `t` of one long episode.
+fn step(t: u64) -> StepRecord {
+    StepRecord {
+        env: 0,
+        episode: 0,
+        t: t as u32,
+        observation: Observation::default(),
+        action: Action::new(0.0, 0.0).unwrap(),
+        reward: 0.0,
+        end: None,
+    }
+}
+
+/// Producers insert batches into a table while one learner thread
+/// updates; the ratio must hold throughout and everything finish.
 fn run_with_producers(producers: u64) {
     let (batch, batches, min_size, slack) = (16u64, 40u64, 64usize, 32.0);
-    let limiter = Arc::new(SharedLimiter::new(
-        Limiter::new(config(1.0, min_size, slack)),
-        0,
-    ));
-    let total = Arc::new(AtomicU64::new(0));
+    let replay = Replay::new(ReplayConfig {
+        capacity: 100_000,
+        ..ReplayConfig::default()
+    });
+    let limiter = Limiter::new(config(1.0, min_size, slack));
+    let table = Arc::new(Table::new(replay, Some(limiter)));
     let deadline = Instant::now() + Duration::from_secs(60);
     let threads: Vec<_> = (0..producers)
-        .map(|_| {
-            let (limiter, total) = (limiter.clone(), total.clone());
+        .map(|p| {
+            let table = table.clone();
             std::thread::spawn(move || {
-                for _ in 0..batches {
-                    while !limiter.wait_to_insert(batch, Duration::from_millis(50)) {
-                        assert!(Instant::now() < deadline, "producer stuck");
-                    }
-                    let len = total.fetch_add(batch, Ordering::SeqCst) + batch;
-                    limiter.replay_len(len as usize);
+                for b in 0..batches {
+                    let stuck = || (Instant::now() >= deadline).then_some("producer stuck");
+                    let stored = table.insert(batch, Duration::from_millis(50), stuck, |replay| {
+                        for t in b * batch..(b + 1) * batch {
+                            replay.insert(p as u32, &step(t)).unwrap();
+                        }
+                        Ok(Some(()))
+                    });
+                    assert_eq!(stored, Ok(Some(())));
                 }
             })
         })
@@ -116,10 +135,10 @@ fn run_with_producers(producers: u64) {
             Instant::now() < deadline,
             "learner stuck after {updates} updates"
         );
-        if limiter.wait_to_update(Duration::from_millis(50)) {
-            limiter.updated();
+        if table.wait_to_update(Duration::from_millis(50)) {
+            table.updated();
             updates += 1;
-            let (counts, _) = limiter.snapshot();
+            let (counts, _) = table.limiter().unwrap();
             let credit =
                 counts.inserts.saturating_sub(min_size as u64) as f64 - counts.updates as f64;
             assert!(credit >= 0.0, "the learner ran ahead: {counts:?}");
@@ -129,7 +148,7 @@ fn run_with_producers(producers: u64) {
     for t in threads {
         t.join().unwrap();
     }
-    let (counts, _) = limiter.snapshot();
+    let (counts, _) = table.limiter().unwrap();
     assert_eq!(counts.inserts, producers * batch * batches);
     assert_eq!(counts.updates, owed);
 }
@@ -142,4 +161,54 @@ fn one_producer_and_the_learner_keep_the_ratio_within_the_slack() {
 #[test]
 fn eight_producers_and_the_learner_keep_the_ratio_within_the_slack() {
     run_with_producers(8);
+}
+
+/// A batch that two streams of one session deliver at once (a resend after
+/// a reconnect) is stored once and counted once: the second is found to be
+/// a duplicate inside the insert, after both waited for the limiter, and
+/// must not charge it (which would let the update-to-insert ratio drift).
+#[test]
+fn a_batch_resent_on_two_streams_is_stored_and_counted_once() {
+    use tweezer_gym::{EnvConfig, StepBounds};
+    use tweezer_learner::learner_state::{ActorBatch, LearnerState};
+    let batch = |sequence: u64| ActorBatch {
+        actor: "actor-r".into(),
+        session: 7,
+        sequence,
+        steps: (sequence * 8..(sequence + 1) * 8).map(step).collect(),
+    };
+    // After the first batch, inserts wait for updates.
+    let state = Arc::new(LearnerState::new(
+        Replay::new(ReplayConfig::default()),
+        Some(Limiter::new(config(1.0, 1, 0.5))),
+        StepBounds::for_config(&EnvConfig::default()),
+    ));
+    state.accept(batch(0), &mut None, None, || false).unwrap();
+    let streams: Vec<_> = (0..2)
+        .map(|_| {
+            let state = state.clone();
+            std::thread::spawn(move || state.accept(batch(1), &mut None, None, || false))
+        })
+        .collect();
+    // Both streams wait for the limiter; the learner then updates until
+    // both are answered.
+    std::thread::sleep(Duration::from_millis(300));
+    let deadline = Instant::now() + Duration::from_secs(60);
+    while streams.iter().any(|s| !s.is_finished()) {
+        assert!(Instant::now() < deadline, "a stream is stuck");
+        if state.table().wait_to_update(Duration::from_millis(10)) {
+            state.table().updated();
+        }
+    }
+    for stream in streams {
+        assert_eq!(stream.join().unwrap().unwrap().sequence, 1);
+    }
+    assert_eq!(state.steps_inserted(), 16);
+    assert_eq!(state.duplicates(), 1);
+    let (counts, _) = state.table().limiter().unwrap();
+    assert_eq!(
+        counts.inserts,
+        state.steps_inserted(),
+        "the limiter counted what the replay was given"
+    );
 }

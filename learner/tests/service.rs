@@ -186,7 +186,7 @@ async fn a_batch_resent_after_a_reconnect_is_acknowledged_not_stored_again() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_producer_held_by_back_pressure_is_released_when_its_actor_goes() {
-    use tweezer_learner::limiter::{Limiter, LimiterConfig, SharedLimiter};
+    use tweezer_learner::limiter::{Limiter, LimiterConfig};
     // Learning starts at 10 transitions and may owe at most 5 updates; no
     // learner runs, so the second batch must wait.
     let limiter = Limiter::new(LimiterConfig {
@@ -196,7 +196,7 @@ async fn a_producer_held_by_back_pressure_is_released_when_its_actor_goes() {
     });
     let shared = Arc::new(LearnerState::new(
         Replay::new(ReplayConfig::default()),
-        Some(SharedLimiter::new(limiter, 0)),
+        Some(limiter),
         StepBounds::for_config(&EnvConfig::default()),
     ));
     let addr = serve(shared.clone()).await.unwrap();

@@ -1,5 +1,6 @@
-//! The replay table, named after Reverb's parts: a FIFO *remover*, a
-//! uniform *selector*, and compact storage.
+//! The replay: compact storage of steps in a ring, which drops the oldest
+//! when full (first in, first out) and samples transitions uniformly. Its
+//! rate limiter and the waiting are the [`Table`](crate::table::Table)'s.
 //!
 //! Steps are stored, not transitions: each step record holds the observation
 //! the action responded to (sphere centres and target vector — never pixels),
