@@ -60,6 +60,19 @@ impl ConfigError {
     }
 }
 
+/// Checks that `value`, the field `field`, is finite and within
+/// `[lo, hi]`.
+pub fn in_range(field: &str, value: f64, lo: f64, hi: f64) -> Result<(), ConfigError> {
+    if value.is_finite() && (lo..=hi).contains(&value) {
+        Ok(())
+    } else {
+        Err(ConfigError::invalid(
+            field,
+            format!("{value} must lie in [{lo}, {hi}]"),
+        ))
+    }
+}
+
 /// Reads and parses a TOML file into any configuration type; errors name
 /// the file. Validation is the caller's.
 pub fn read_toml<T: DeserializeOwned>(path: &Path) -> Result<T, ConfigError> {

@@ -90,8 +90,8 @@ impl AgentConfig {
         let config: Self = read_toml(path)?;
         config.validate().map_err(|e| match e {
             ConfigError::Invalid { field, reason } => ConfigError::Invalid {
-                field: format!("{field} (in {})", path.display()),
-                reason,
+                field,
+                reason: format!("{reason} (in {})", path.display()),
             },
             other => other,
         })?;
@@ -110,10 +110,10 @@ impl AgentConfig {
             ("policy", self.policy.validate()),
             ("overlay", self.overlay.validate()),
             ("twin", self.twin.validate()),
-            ("camera", self.camera.genicam.validate()),
-            ("camera", self.camera.stream_validate()),
+            ("camera.genicam", self.camera.genicam.validate()),
+            ("camera.stream", self.camera.stream_validate()),
         ] {
-            check.map_err(|reason| ConfigError::invalid(table, reason))?;
+            check.map_err(|e| e.in_table(table))?;
         }
         Ok(())
     }
@@ -170,7 +170,7 @@ pub struct CameraConfig {
 
 impl CameraConfig {
     /// The `[camera.stream]` table is checked when it is the source.
-    fn stream_validate(&self) -> Result<(), String> {
+    fn stream_validate(&self) -> Result<(), ConfigError> {
         match self.source {
             CameraSource::Stream => self.stream.validate(),
             _ => Ok(()),

@@ -13,6 +13,7 @@ pub use rig::{Rig, RigError};
 pub use watchdog::Watchdog;
 
 use serde::{Deserialize, Serialize};
+use tweezer_config::{ConfigError, in_range};
 use tweezer_gym::Outcome;
 
 /// The `[control]` table.
@@ -48,23 +49,19 @@ impl Default for ControlConfig {
 
 impl ControlConfig {
     /// Checks every field.
-    pub fn validate(&self) -> Result<(), String> {
+    pub fn validate(&self) -> Result<(), ConfigError> {
         for (name, value, lo, hi) in [
             ("rate_hz", self.rate_hz, 0.1, 100.0),
             ("deadline_margin_ms", self.deadline_margin_ms, 1.0, 10_000.0),
             ("px_per_step", self.px_per_step, 0.01, 1000.0),
             ("trap_search_px", self.trap_search_px, 1.0, 500.0),
         ] {
-            if !(value.is_finite() && (lo..=hi).contains(&value)) {
-                return Err(format!(
-                    "control.{name} = {value}: must lie in [{lo}, {hi}]"
-                ));
-            }
+            in_range(name, value, lo, hi)?;
         }
         if !(1..=100).contains(&self.lost_trap_frames) {
-            return Err(format!(
-                "control.lost_trap_frames = {}: must lie in [1, 100]",
-                self.lost_trap_frames
+            return Err(ConfigError::invalid(
+                "lost_trap_frames",
+                format!("{} must lie in [1, 100]", self.lost_trap_frames),
             ));
         }
         Ok(())

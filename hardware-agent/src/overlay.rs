@@ -6,6 +6,7 @@
 
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
+use tweezer_config::{ConfigError, in_range};
 
 /// The `[overlay]` table.
 #[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
@@ -20,14 +21,8 @@ pub struct OverlayConfig {
 
 impl OverlayConfig {
     /// Checks the keep-out width.
-    pub fn validate(&self) -> Result<(), String> {
-        if !(self.keep_out_um.is_finite() && (0.0..=5000.0).contains(&self.keep_out_um)) {
-            return Err(format!(
-                "overlay.keep_out_um = {}: must lie in [0, 5000]",
-                self.keep_out_um
-            ));
-        }
-        Ok(())
+    pub fn validate(&self) -> Result<(), ConfigError> {
+        in_range("keep_out_um", self.keep_out_um, 0.0, 5000.0)
     }
 }
 

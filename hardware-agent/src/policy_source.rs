@@ -8,6 +8,7 @@ use burn::tensor::Device;
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
 use std::time::Duration;
+use tweezer_config::{ConfigError, in_range};
 use tweezer_gym::{Baseline, EnvConfig, Policy};
 use tweezer_nets::{LoadError, NetworkPolicy, SnapshotInfo, file_sha256};
 use tweezer_proto::pb::learner_client::LearnerClient;
@@ -108,7 +109,8 @@ impl SnapshotChoice {
 impl PolicyConfig {
     /// The policy the table names.
     pub fn choice(&self) -> Result<PolicyChoice, PolicyError> {
-        self.validate().map_err(PolicyError::Config)?;
+        self.validate()
+            .map_err(|e| PolicyError::Config(e.in_table("policy").to_string()))?;
         let snapshot = || SnapshotChoice::parse(&self.snapshot).map_err(PolicyError::Config);
         Ok(match self.source {
             PolicyKind::Greedy => PolicyChoice::Baseline(Baseline::Greedy),
@@ -120,27 +122,29 @@ impl PolicyConfig {
     }
 
     /// Checks the fields the source uses.
-    pub fn validate(&self) -> Result<(), String> {
-        let snapshot = SnapshotChoice::parse(&self.snapshot)?;
+    pub fn validate(&self) -> Result<(), ConfigError> {
+        let snapshot = SnapshotChoice::parse(&self.snapshot)
+            .map_err(|e| ConfigError::invalid("snapshot", e))?;
         if self.follow
             && (self.source != PolicyKind::Learner
                 || matches!(snapshot, SnapshotChoice::Version(_)))
         {
-            return Err(format!(
-                "policy.follow needs source = \"learner\" and snapshot = \"best\" or \"latest\" (source = {:?}, snapshot = {:?})",
-                self.source, self.snapshot
+            return Err(ConfigError::invalid(
+                "follow",
+                format!(
+                    "needs source = \"learner\" and snapshot = \"best\" or \"latest\" (source = {:?}, snapshot = {:?})",
+                    self.source, self.snapshot
+                ),
             ));
         }
-        if !(self.timeout_s.is_finite() && (0.1..=3600.0).contains(&self.timeout_s)) {
-            return Err(format!(
-                "policy.timeout_s = {}: must lie in [0.1, 3600]",
-                self.timeout_s
-            ));
-        }
+        in_range("timeout_s", self.timeout_s, 0.1, 3600.0)?;
         if self.source == PolicyKind::Learner
             && self.learner.parse::<tonic::transport::Uri>().is_err()
         {
-            return Err(format!("policy.learner = {:?} is not a URI", self.learner));
+            return Err(ConfigError::invalid(
+                "learner",
+                format!("{:?} is not a URI", self.learner),
+            ));
         }
         Ok(())
     }

@@ -12,6 +12,7 @@ pub use shared_port::{SharedPort, Stopper};
 
 use serde::{Deserialize, Serialize};
 use std::path::PathBuf;
+use tweezer_config::{ConfigError, in_range};
 
 /// The `[stages]` table: the two KDC101 controllers and how they map onto
 /// the image.
@@ -79,7 +80,7 @@ impl Default for StagesConfig {
 
 impl StagesConfig {
     /// Checks every field; the error names the first bad one.
-    pub fn validate(&self) -> Result<(), String> {
+    pub fn validate(&self) -> Result<(), ConfigError> {
         for (name, value, lo, hi) in [
             ("px_per_um", self.px_per_um, 0.01, 1000.0),
             ("min_mm", self.min_mm, 0.0, 12.0),
@@ -88,31 +89,32 @@ impl StagesConfig {
             ("acceleration_mm_s2", self.acceleration_mm_s2, 1e-3, 4.0),
             ("backlash_um", self.backlash_um, 0.0, 100.0),
         ] {
-            if !(value.is_finite() && (lo..=hi).contains(&value)) {
-                return Err(format!("stages.{name} = {value}: must lie in [{lo}, {hi}]"));
-            }
+            in_range(name, value, lo, hi)?;
         }
         if self.min_mm >= self.max_mm {
-            return Err(format!(
-                "stages.min_mm = {} must be below stages.max_mm = {}",
-                self.min_mm, self.max_mm
+            return Err(ConfigError::invalid(
+                "min_mm",
+                format!("{} must be below max_mm = {}", self.min_mm, self.max_mm),
             ));
         }
         for (name, sign) in [("x_sign", self.x_sign), ("y_sign", self.y_sign)] {
             if sign != 1.0 && sign != -1.0 {
-                return Err(format!("stages.{name} = {sign}: must be 1 or -1"));
+                return Err(ConfigError::invalid(
+                    name,
+                    format!("{sign} must be 1 or -1"),
+                ));
             }
         }
         if !(1..=60_000).contains(&self.reply_timeout_ms) {
-            return Err(format!(
-                "stages.reply_timeout_ms = {}: must lie in [1, 60000]",
-                self.reply_timeout_ms
+            return Err(ConfigError::invalid(
+                "reply_timeout_ms",
+                format!("{} must lie in [1, 60000]", self.reply_timeout_ms),
             ));
         }
         if self.x_port == self.y_port {
-            return Err(format!(
-                "stages.x_port and stages.y_port are both {}",
-                self.x_port.display()
+            return Err(ConfigError::invalid(
+                "y_port",
+                format!("x_port and y_port are both {}", self.x_port.display()),
             ));
         }
         Ok(())

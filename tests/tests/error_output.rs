@@ -148,6 +148,18 @@ fn a_bad_field_is_blamed_on_the_field_the_user_set() {
         &["--config", &pooling, "config"],
         "learner.network.pooling: unknown variant `sum`",
     );
+    let stages = file("stages.toml", "[stages]\nmax_speed_mm_s = 5.0\n");
+    fails_plainly(
+        "hardware-agent",
+        &["--config", &stages, "config"],
+        "`stages.max_speed_mm_s`: 5 must lie in [0.0001, 2.6]",
+    );
+    let optics = file("optics.toml", "[twin.optics]\nfocus = 3.0\n");
+    fails_plainly(
+        "hardware-agent",
+        &["--config", &optics, "config"],
+        "`twin.optics.focus`",
+    );
     let fov = file("fov.toml", "[env]\nfov_px = [1280, 1000]\n");
     for bin in ["learner", "actor"] {
         fails_plainly(bin, &["--config", &fov, "config"], "`env.fov_px`");

@@ -15,6 +15,7 @@ pub use replay::ReplayCamera;
 use std::path::PathBuf;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
+use tweezer_config::ConfigError;
 
 /// The instant of a moment given as time since the Unix epoch (a camera's
 /// or a program's timestamp), no later than now.
@@ -121,6 +122,22 @@ pub enum CameraError {
     /// The camera could not be reached, or stopped answering.
     #[error("{0}")]
     Device(String),
+}
+
+impl CameraError {
+    /// A setting of the `table` configuration table that its check refused.
+    pub fn setting(table: &str, e: ConfigError) -> Self {
+        match e {
+            ConfigError::Invalid { field, reason } => Self::Setting {
+                setting: format!("{table}.{field}"),
+                reason,
+            },
+            other => Self::Setting {
+                setting: table.into(),
+                reason: other.to_string(),
+            },
+        }
+    }
 }
 
 /// A source of frames: a real camera, a replayed directory, or the digital

@@ -6,6 +6,7 @@
 
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
+use tweezer_config::{ConfigError, in_range};
 use tweezer_gym::SplitMix64;
 use tweezer_vision::GrayFrame;
 
@@ -82,17 +83,17 @@ pub struct Debris {
 
 impl OpticsConfig {
     /// Checks the settings; the error names the first bad one.
-    pub fn validate(&self) -> Result<(), String> {
+    pub fn validate(&self) -> Result<(), ConfigError> {
         if self.size_px[0] < 64 || self.size_px[1] < 64 {
-            return Err(format!(
-                "twin.optics.size_px = {:?}: at least 64 x 64",
-                self.size_px
+            return Err(ConfigError::invalid(
+                "size_px",
+                format!("{:?}: at least 64 x 64", self.size_px),
             ));
         }
         if !(8..=16).contains(&self.bit_depth) {
-            return Err(format!(
-                "twin.optics.bit_depth = {}: 8 to 16",
-                self.bit_depth
+            return Err(ConfigError::invalid(
+                "bit_depth",
+                format!("{}: 8 to 16", self.bit_depth),
             ));
         }
         for (name, value, lo, hi) in [
@@ -109,11 +110,7 @@ impl OpticsConfig {
             ("debris_per_frame", self.debris_per_frame, 0.0, 100.0),
             ("vignetting", self.vignetting, 0.0, 0.9),
         ] {
-            if !(value.is_finite() && (lo..=hi).contains(&value)) {
-                return Err(format!(
-                    "twin.optics.{name} = {value}: must lie in [{lo}, {hi}]"
-                ));
-            }
+            in_range(name, value, lo, hi)?;
         }
         Ok(())
     }

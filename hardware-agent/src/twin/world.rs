@@ -8,7 +8,7 @@ use serde::{Deserialize, Serialize};
 use std::path::Path;
 use std::sync::Arc;
 use std::time::Duration;
-use tweezer_config::ConfigError;
+use tweezer_config::{ConfigError, in_range};
 use tweezer_gym::{Env, EnvConfig, SplitMix64};
 use tweezer_vision::{Camera, CameraError, GrayFrame};
 
@@ -68,31 +68,33 @@ impl Default for TwinConfig {
 
 impl TwinConfig {
     /// Checks every field.
-    pub fn validate(&self) -> Result<(), String> {
-        self.optics.validate()?;
+    pub fn validate(&self) -> Result<(), ConfigError> {
+        self.optics.validate().map_err(|e| e.in_table("optics"))?;
         if self.latency_ms > 1000 {
-            return Err(format!(
-                "twin.latency_ms = {}: at most 1000",
-                self.latency_ms
+            return Err(ConfigError::invalid(
+                "latency_ms",
+                format!("{}: at most 1000", self.latency_ms),
             ));
         }
         if let Some(truth) = &self.truth {
-            let valid = truth.px_per_um.is_finite()
-                && (0.01..=1000.0).contains(&truth.px_per_um)
-                && [truth.x_sign, truth.y_sign].iter().all(|s| s.abs() == 1.0);
-            if !valid {
-                return Err(format!(
-                    "twin.truth: px_per_um must lie in [0.01, 1000] and each sign be 1 or -1, not {truth:?}"
-                ));
+            in_range("truth.px_per_um", truth.px_per_um, 0.01, 1000.0)?;
+            for (name, sign) in [
+                ("truth.x_sign", truth.x_sign),
+                ("truth.y_sign", truth.y_sign),
+            ] {
+                if sign.abs() != 1.0 {
+                    return Err(ConfigError::invalid(
+                        name,
+                        format!("{sign} must be 1 or -1"),
+                    ));
+                }
             }
         }
         for (name, value, lo, hi) in [
             ("backlash_um", self.backlash_um, 0.0, 100.0),
             ("start_mm", self.start_mm, 0.0, 12.0),
         ] {
-            if !(value.is_finite() && (lo..=hi).contains(&value)) {
-                return Err(format!("twin.{name} = {value}: must lie in [{lo}, {hi}]"));
-            }
+            in_range(name, value, lo, hi)?;
         }
         Ok(())
     }

@@ -20,6 +20,7 @@ use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
 use std::sync::{Arc, Condvar, Mutex, MutexGuard};
 use std::time::{Duration, Instant};
+use tweezer_config::{ConfigError, in_range};
 
 /// The longest PGM header read before the stream is declared malformed.
 const MAX_HEADER_BYTES: usize = 4096;
@@ -57,25 +58,23 @@ impl Default for StreamConfig {
 
 impl StreamConfig {
     /// Checks the table; the error names what is wrong.
-    pub fn validate(&self) -> Result<(), String> {
+    pub fn validate(&self) -> Result<(), ConfigError> {
         match (self.command.is_empty(), &self.socket) {
             (true, None) => {
-                return Err(
-                    "camera.stream: set `command` (a program writing frames on its standard output) or `socket` (a Unix socket path)".into(),
-                );
+                return Err(ConfigError::invalid(
+                    "command",
+                    "set `command` (a program writing frames on its standard output) or `socket` (a Unix socket path)",
+                ));
             }
             (false, Some(_)) => {
-                return Err("camera.stream: set `command` or `socket`, not both".into());
+                return Err(ConfigError::invalid(
+                    "socket",
+                    "set `command` or `socket`, not both",
+                ));
             }
             _ => {}
         }
-        if !(self.start_timeout_s.is_finite() && (0.1..=600.0).contains(&self.start_timeout_s)) {
-            return Err(format!(
-                "camera.stream.start_timeout_s = {}: must lie in [0.1, 600]",
-                self.start_timeout_s
-            ));
-        }
-        Ok(())
+        in_range("start_timeout_s", self.start_timeout_s, 0.1, 600.0)
     }
 }
 
@@ -385,10 +384,9 @@ impl StreamCamera {
         timeout: Duration,
         counters: Arc<FrameCounters>,
     ) -> Result<Self, CameraError> {
-        config.validate().map_err(|reason| CameraError::Setting {
-            setting: "camera.stream".into(),
-            reason,
-        })?;
+        config
+            .validate()
+            .map_err(|e| CameraError::setting("camera.stream", e))?;
         let listener = config
             .socket
             .as_deref()
@@ -607,6 +605,11 @@ mod tests {
             socket: Some("/tmp/s".into()),
             ..StreamConfig::default()
         };
-        assert!(both.validate().unwrap_err().contains("not both"));
+        assert!(
+            both.validate()
+                .unwrap_err()
+                .to_string()
+                .contains("not both")
+        );
     }
 }

@@ -12,6 +12,7 @@ mod aravis_camera;
 pub use aravis_camera::{GenicamCamera, describe, discover};
 
 use serde::{Deserialize, Serialize};
+use tweezer_config::{ConfigError, in_range};
 
 /// Whether this build can drive GenICam cameras.
 pub const AVAILABLE: bool = cfg!(feature = "aravis");
@@ -65,38 +66,36 @@ impl Default for GenicamConfig {
 
 impl GenicamConfig {
     /// Checks every field; the error names the first bad one.
-    pub fn validate(&self) -> Result<(), String> {
+    pub fn validate(&self) -> Result<(), ConfigError> {
         for (name, value, lo, hi) in [
             ("exposure_us", self.exposure_us, 1.0, 1e8),
             ("gain", self.gain, -1e3, 1e3),
             ("frame_rate_hz", self.frame_rate_hz, 0.01, 1e5),
         ] {
-            if let Some(value) = value
-                && !(value.is_finite() && (lo..=hi).contains(&value))
-            {
-                return Err(format!(
-                    "camera.genicam.{name} = {value}: must lie in [{lo}, {hi}]"
-                ));
+            if let Some(value) = value {
+                in_range(name, value, lo, hi)?;
             }
         }
         if let Some([_, _, w, h]) = self.roi
             && (w == 0 || h == 0)
         {
-            return Err(format!(
-                "camera.genicam.roi: width and height must be positive, not {w} x {h}"
+            return Err(ConfigError::invalid(
+                "roi",
+                format!("width and height must be positive, not {w} x {h}"),
             ));
         }
         if let Some(binning) = self.binning
             && binning.iter().any(|&b| !(1..=64).contains(&b))
         {
-            return Err(format!(
-                "camera.genicam.binning = {binning:?}: each must lie in [1, 64]"
+            return Err(ConfigError::invalid(
+                "binning",
+                format!("{binning:?}: each must lie in [1, 64]"),
             ));
         }
         if !(2..=256).contains(&self.buffers) {
-            return Err(format!(
-                "camera.genicam.buffers = {}: must lie in [2, 256]",
-                self.buffers
+            return Err(ConfigError::invalid(
+                "buffers",
+                format!("{} must lie in [2, 256]", self.buffers),
             ));
         }
         Ok(())
@@ -251,17 +250,22 @@ mod tests {
             buffers: 1,
             ..GenicamConfig::default()
         };
-        assert!(bad.validate().unwrap_err().contains("buffers"));
+        assert!(bad.validate().unwrap_err().to_string().contains("buffers"));
         let bad = GenicamConfig {
             exposure_us: Some(-3.0),
             ..GenicamConfig::default()
         };
-        assert!(bad.validate().unwrap_err().contains("exposure_us"));
+        assert!(
+            bad.validate()
+                .unwrap_err()
+                .to_string()
+                .contains("exposure_us")
+        );
         let bad = GenicamConfig {
             roi: Some([0, 0, 0, 10]),
             ..GenicamConfig::default()
         };
-        assert!(bad.validate().unwrap_err().contains("roi"));
+        assert!(bad.validate().unwrap_err().to_string().contains("roi"));
         assert!(GenicamConfig::default().validate().is_ok());
     }
 }

@@ -185,10 +185,9 @@ impl GenicamCamera {
         timeout: Duration,
         counters: Arc<FrameCounters>,
     ) -> Result<Self, CameraError> {
-        config.validate().map_err(|reason| CameraError::Setting {
-            setting: "camera.genicam".into(),
-            reason,
-        })?;
+        config
+            .validate()
+            .map_err(|e| CameraError::setting("camera.genicam", e))?;
         let (link, settings) = connect(config)?;
         Ok(Self {
             config: config.clone(),
