@@ -5,6 +5,8 @@ use serde::{Deserialize, Serialize};
 use std::path::Path;
 use tweezer_config::{ConfigError, read_toml};
 
+use crate::env::Outcome;
+
 /// Everything that defines the virtual environment. Defaults are `docs/spec.md`
 /// §2.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -310,6 +312,29 @@ impl EnvConfig {
         ]
         .iter()
         .fold([0.0, 0.0], |[lo, hi], [a, b]| [lo + a, hi + b])
+    }
+
+    /// Whether a free sphere `offset` px from the trap's centre has
+    /// entered the trap.
+    pub fn collides(&self, offset: [f64; 2]) -> bool {
+        let reach = self.collision_radius_px;
+        offset[0] * offset[0] + offset[1] * offset[1] <= reach * reach
+    }
+
+    /// How an episode stands after its step number `steps`, with the trap
+    /// `to_target` px from the target: a collision first, then success,
+    /// then the time limit. The one rule for the virtual environment and
+    /// the instrument.
+    pub fn outcome(&self, collided: bool, to_target: f64, steps: u32) -> Outcome {
+        if collided {
+            Outcome::Collision
+        } else if to_target <= self.success_radius_px {
+            Outcome::Success
+        } else if steps >= self.time_limit {
+            Outcome::Timeout
+        } else {
+            Outcome::Running
+        }
     }
 
     /// Whether a reward component is switched on.

@@ -296,22 +296,13 @@ impl Env {
         ]);
 
         let after = distance(self.trap, self.target);
-        let reach = self.config.collision_radius_px;
         let collided = self.wake.awake().iter().any(|&k| {
             let p = self.spheres[k as usize].pos;
-            let (dx, dy) = (p[0] - self.trap[0], p[1] - self.trap[1]);
-            dx * dx + dy * dy <= reach * reach
+            self.config
+                .collides([p[0] - self.trap[0], p[1] - self.trap[1]])
         });
-        let succeeded = !collided && after <= self.config.success_radius_px;
-        self.outcome = if collided {
-            Outcome::Collision
-        } else if succeeded {
-            Outcome::Success
-        } else if self.t >= self.config.time_limit {
-            Outcome::Timeout
-        } else {
-            Outcome::Running
-        };
+        self.outcome = self.config.outcome(collided, after, self.t);
+        let succeeded = self.outcome == Outcome::Success;
 
         let c = &self.config;
         let on = |component| c.reward_on(component);

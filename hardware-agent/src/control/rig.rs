@@ -7,7 +7,9 @@ use kdc101::apt::StopMode;
 use kdc101::{StagePair, Stopper};
 use std::io::{Read, Write};
 use std::time::{Duration, Instant};
-use tweezer_gym::{Action, EnvConfig, Observation, ObservationBounds, Policy, SphereTracker};
+use tweezer_gym::{
+    Action, EnvConfig, Observation, ObservationBounds, Outcome, Policy, SphereTracker,
+};
 use tweezer_vision::Camera;
 use tweezer_vision::{Detection, SegmentError, Segmenter};
 
@@ -62,7 +64,9 @@ impl<C: Camera, P: Read + Write + Send + 'static> Rig<C, P> {
         control: ControlConfig,
         overlay: Overlay,
     ) -> Result<Self, RigError> {
-        control.validate().map_err(RigError::Control)?;
+        control
+            .validate()
+            .map_err(|e| RigError::Control(e.in_table("control").to_string()))?;
         let fov = env.fov_px;
         let frame = camera.size();
         if frame[0] > fov[0] as usize || frame[1] > fov[1] as usize {
@@ -238,22 +242,23 @@ impl<C: Camera, P: Read + Write + Send + 'static> Rig<C, P> {
                 &mut observation.displacements,
             );
             let remaining = [target_px[0] - position[0], target_px[1] - position[1]];
-            // Scored as the virtual environment scores a step: collision
-            // (with a free sphere or a virtual obstacle) first, then
-            // success, then the time limit.
+            // Scored by the virtual environment's rule; a collision (with a
+            // free sphere or a virtual obstacle) needs the trapped sphere
+            // in view.
             if progress.steps > 0 {
-                let reach = self.env.collision_radius_px;
                 let hit = observation.centres.iter().any(|c| {
-                    (f64::from(c[0]) - centre[0]).hypot(f64::from(c[1]) - centre[1]) <= reach
+                    self.env
+                        .collides([f64::from(c[0]) - centre[0], f64::from(c[1]) - centre[1]])
                 });
-                if hit && trapped.is_some() {
-                    return Ending::Collision;
-                }
-                if remaining[0].hypot(remaining[1]) <= self.env.success_radius_px {
-                    return Ending::Success;
-                }
-                if progress.steps >= self.env.time_limit {
-                    return Ending::Timeout;
+                let to_target = remaining[0].hypot(remaining[1]);
+                match self
+                    .env
+                    .outcome(hit && trapped.is_some(), to_target, progress.steps)
+                {
+                    Outcome::Collision => return Ending::Collision,
+                    Outcome::Success => return Ending::Success,
+                    Outcome::Timeout => return Ending::Timeout,
+                    Outcome::Running => {}
                 }
             }
             let Some(trapped) = trapped else {
