@@ -77,17 +77,16 @@ enum Command {
 }
 
 /// mimalloc keeps freed pages for reuse: a TD3 update allocates and frees
-/// hundreds of megabytes of tensors, and with glibc's malloc the pages of
-/// each were faulted in afresh (an update took 2.0 s instead of 1.6 s).
+/// hundreds of megabytes of tensors, and glibc's malloc gives them back to
+/// the kernel, which must fault them in and zero them again next update.
 #[global_allocator]
 static ALLOCATOR: mimalloc::MiMalloc = mimalloc::MiMalloc;
 
 /// How long mimalloc keeps freed memory before it returns it to the
-/// system, ms. Its default, 1 s, is shorter than an update at 320 × 256
-/// (1.4–2.5 s on 2 cores): each update's tensors (activations, the target
-/// passes' outputs: hundreds of megabytes) were faulted in and zeroed by
-/// the kernel afresh, and an update took about 10 % longer. An idle
-/// learner still gives memory back.
+/// system, ms. Its default, 1 s, can be shorter than one update of a large
+/// network on a CPU, and then each update's tensors (activations, the
+/// target passes' outputs: hundreds of megabytes) would be faulted in and
+/// zeroed by the kernel afresh. An idle learner still gives memory back.
 const PURGE_DELAY_MS: &str = "30000";
 
 /// mimalloc reads its options from the environment before `main`: a

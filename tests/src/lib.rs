@@ -25,10 +25,10 @@ height = 16
 
 /// The `[control]` table of every hardware agent the system tests start: a
 /// step may start up to five seconds late. The tests drive the twin on a
-/// shared, loaded machine that cannot promise the instrument's 100 ms (a
-/// step started 1,015 ms late in one CI run, failing an episode with a
-/// one-second margin); the deadline itself is tested on its own, with an
-/// injected stall (`hardware-agent/tests/loop_interruptions.rs`).
+/// shared, loaded machine that cannot promise the instrument's 100 ms, and
+/// no test may depend on the scheduler meeting a deadline; the deadline
+/// itself is tested on its own, with an injected stall
+/// (`hardware-agent/tests/loop_interruptions.rs`).
 pub const AGENT_CONTROL: &str = "[control]\ndeadline_margin_ms = 5000\n";
 
 /// Every binary of the workspace by name, built once per test process by
