@@ -11,7 +11,7 @@ use std::process::Stdio;
 use std::time::Duration;
 use tokio::io::{AsyncBufReadExt, BufReader};
 use tokio::process::{Child, Command};
-use tweezer_learner::run_dir::RunDir;
+use tweezer_learner::persistence::run_dir::RunDir;
 
 /// How long the learner may take to listen (building networks, reading a
 /// checkpoint).

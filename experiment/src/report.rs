@@ -15,8 +15,8 @@ use std::path::{Path, PathBuf};
 use tweezer_figures::{Curve, RewardFigure, draw_episodes, reward_figure};
 use tweezer_gym::{Baseline, EnvConfig, EvalSummary, evaluate};
 use tweezer_learner::config::LearnerFile;
-use tweezer_learner::durable_write::write_atomic;
-use tweezer_learner::run_dir::RunDir;
+use tweezer_learner::persistence::durable_write::write_atomic;
+use tweezer_learner::persistence::run_dir::RunDir;
 use tweezer_nets::NetworkPolicy;
 
 /// Episodes in Fig. 4's rolling mean (the paper's).

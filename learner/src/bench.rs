@@ -1,12 +1,11 @@
 //! `learner bench`: how fast the learner's parts run on this machine.
 
 use crate::config::LearnerConfig;
-use crate::learner_state::LearnerState;
-use crate::loopback::batches;
-use crate::minibatch::minibatch_tensors;
+use crate::ingest::service::LearnerService;
 use crate::replay::{Replay, ReplayConfig};
-use crate::service::LearnerService;
-use crate::td3::{Td3, Td3Config};
+use crate::state::LearnerState;
+use crate::training::minibatch::minibatch_tensors;
+use crate::training::td3::{Td3, Td3Config};
 use burn::tensor::Device;
 use serde::Serialize;
 use std::path::Path;
@@ -157,6 +156,28 @@ fn filled_replay(env: &EnvConfig, capacity: usize) -> Result<Replay, ConfigError
     Ok(replay)
 }
 
+/// `count` batches of `size` consecutive random-policy steps from `envs`
+/// environments, as actor `actor` would send them: the ingest benchmark's
+/// load, and the tests'.
+pub fn random_batches(
+    env: &EnvConfig,
+    actor: &str,
+    envs: usize,
+    count: usize,
+    size: usize,
+    seed: u64,
+) -> Result<Vec<pb::StepBatch>, ConfigError> {
+    let mut steps = RandomSteps::new(env, envs, seed)?.map(|r| tweezer_proto::step_to_wire(&r));
+    Ok((0..count)
+        .map(|sequence| pb::StepBatch {
+            actor_id: actor.to_string(),
+            session: seed.wrapping_add(1),
+            sequence: sequence as u64,
+            steps: steps.by_ref().take(size).collect(),
+        })
+        .collect())
+}
+
 /// Transitions per second through 8 concurrent `StreamSteps` calls on
 /// loopback into a replay of the paper's capacity, without rate limiting,
 /// secured by the security files `server` and `client`.
@@ -165,7 +186,7 @@ fn ingest_rate(env: &EnvConfig, server: &Path, client: &Path) -> anyhow::Result<
     let client = ClientSecurity::load(&Security::load(Some(client))?)?;
     let streams = 8;
     let per_stream: Vec<Vec<pb::StepBatch>> = (0..streams)
-        .map(|k| batches(env, &format!("bench-{k}"), 16, 40, 256, k))
+        .map(|k| random_batches(env, &format!("bench-{k}"), 16, 40, 256, k))
         .collect::<Result<_, _>>()?;
     let total: usize = per_stream.iter().flatten().map(|b| b.steps.len()).sum();
     let runtime = tokio::runtime::Builder::new_multi_thread()

@@ -1,10 +1,10 @@
 //! The learner's config file: an `[env]` table and a `[learner]` table,
 //! every field defaulting to the values of `docs/spec.md`.
 
-use crate::divergence::Rollback;
-use crate::limiter::LimiterConfig;
+use crate::ingest::limiter::LimiterConfig;
 use crate::replay::ReplayConfig;
-use crate::td3::Td3Config;
+use crate::training::divergence::Rollback;
+use crate::training::td3::Td3Config;
 use burn::tensor::Device;
 use serde::{Deserialize, Serialize};
 use std::net::SocketAddr;
@@ -37,7 +37,7 @@ impl LearnerFile {
     /// The config of the run in `dir`, as its learner wrote it; a
     /// directory without one is said not to be a run directory.
     pub fn of_run(dir: &Path) -> anyhow::Result<Self> {
-        let path = crate::run_dir::RunDir::new(dir).config();
+        let path = crate::persistence::run_dir::RunDir::new(dir).config();
         if !path.is_file() {
             anyhow::bail!(
                 "{} is not a run directory: it has no {} (a learner writes one when it starts a run)",
@@ -381,11 +381,11 @@ impl DeviceChoice {
         match self {
             Self::Flex => Ok(Device::flex()),
             #[cfg(feature = "cuda")]
-            Self::Cuda => crate::gpu_devices::cuda(),
+            Self::Cuda => crate::training::gpu_devices::cuda(),
             #[cfg(not(feature = "cuda"))]
             Self::Cuda => Err(missing("cuda")),
             #[cfg(feature = "wgpu")]
-            Self::Wgpu => crate::gpu_devices::wgpu(),
+            Self::Wgpu => crate::training::gpu_devices::wgpu(),
             #[cfg(not(feature = "wgpu"))]
             Self::Wgpu => Err(missing("wgpu")),
         }

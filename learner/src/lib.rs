@@ -3,29 +3,21 @@
 //! allows, and policy snapshots are published by version; checkpoints make
 //! it resumable. The experiment runner (`tweezer-experiment`) launches it
 //! with its actors and reports on finished runs.
+//!
+//! - [`ingest`]: the gRPC service, the actor sessions, the table (the
+//!   replay and its rate limiter), episodes and status.
+//! - [`training`]: TD3, the loop that runs it, minibatches, the divergence
+//!   guard.
+//! - [`persistence`]: the run directory, checkpoints, snapshots, the run
+//!   log and TensorBoard.
+//! - [`state`]: what the service and the training thread share.
+//! - [`serve`]: the `learner serve` process, from start to final checkpoint.
 
 pub mod bench;
-pub mod checkpoint;
 pub mod config;
-pub mod divergence;
-pub mod durable_write;
-pub mod episodes;
-pub mod fused_updates;
-#[cfg(any(feature = "cuda", feature = "wgpu"))]
-pub mod gpu_devices;
-pub mod learner_state;
-pub mod limiter;
-pub mod loopback;
-pub mod minibatch;
-pub mod prometheus_metrics;
+pub mod ingest;
+pub mod persistence;
 pub mod replay;
-pub mod run_dir;
-pub mod run_lock;
-pub mod run_log;
 pub mod serve;
-pub mod service;
-pub mod snapshots;
-pub mod table;
-pub mod td3;
-pub mod tensorboard;
-pub mod trainer;
+pub mod state;
+pub mod training;

@@ -5,19 +5,19 @@
 //! SIGTERM stops accepting, finishes the update in flight and writes a
 //! final checkpoint.
 
-use crate::checkpoint::{Checkpoints, Loaded};
 use crate::config::LearnerFile;
-use crate::durable_write::{remove_leftovers, write_bytes_atomic};
-use crate::learner_state::LearnerState;
-use crate::limiter::Limiter;
-use crate::prometheus_metrics::prometheus;
+use crate::ingest::limiter::Limiter;
+use crate::ingest::metrics::prometheus;
+use crate::ingest::service::LearnerService;
+use crate::persistence::checkpoint::{Checkpoints, Loaded};
+use crate::persistence::durable_write::{remove_leftovers, write_bytes_atomic};
+use crate::persistence::run_dir::RunDir;
+use crate::persistence::run_lock::RunLock;
+use crate::persistence::run_log::RunLog;
+use crate::persistence::snapshots::Snapshots;
 use crate::replay::Replay;
-use crate::run_dir::RunDir;
-use crate::run_lock::RunLock;
-use crate::run_log::RunLog;
-use crate::service::LearnerService;
-use crate::snapshots::Snapshots;
-use crate::trainer::training;
+use crate::state::LearnerState;
+use crate::training::trainer::training;
 use anyhow::{Context, bail};
 use std::sync::Arc;
 use tokio::net::TcpListener;

@@ -3,7 +3,7 @@
 use tweezer_gym::{EnvConfig, ImageConfig};
 use tweezer_learner::bench::{LearnerBench, run};
 use tweezer_learner::config::{LearnerConfig, NetworkConfig, SetNetworkConfig};
-use tweezer_learner::td3::Td3Config;
+use tweezer_learner::training::td3::Td3Config;
 
 fn small() -> EnvConfig {
     EnvConfig {

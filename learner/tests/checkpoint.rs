@@ -4,7 +4,7 @@
 
 use sha2::{Digest, Sha256};
 use std::io;
-use tweezer_learner::checkpoint::{CheckpointHeader, Checkpoints, read, read_header};
+use tweezer_learner::persistence::checkpoint::{CheckpointHeader, Checkpoints, read, read_header};
 
 fn header(updates: u64) -> CheckpointHeader {
     CheckpointHeader {

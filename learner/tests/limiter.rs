@@ -4,9 +4,9 @@
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 use tweezer_gym::{Action, Observation, StepRecord};
-use tweezer_learner::limiter::{Limiter, LimiterConfig, LimiterState};
+use tweezer_learner::ingest::limiter::{Limiter, LimiterConfig, LimiterState};
+use tweezer_learner::ingest::table::Table;
 use tweezer_learner::replay::{Replay, ReplayConfig};
-use tweezer_learner::table::Table;
 
 fn config(ratio: f64, min_size: usize, slack: f64) -> LimiterConfig {
     LimiterConfig {
@@ -170,7 +170,8 @@ fn eight_producers_and_the_learner_keep_the_ratio_within_the_slack() {
 #[test]
 fn a_batch_resent_on_two_streams_is_stored_and_counted_once() {
     use tweezer_gym::{EnvConfig, StepBounds};
-    use tweezer_learner::learner_state::{ActorBatch, LearnerState};
+    use tweezer_learner::ingest::batch::ActorBatch;
+    use tweezer_learner::state::LearnerState;
     let batch = |sequence: u64| ActorBatch {
         actor: "actor-r".into(),
         session: 7,

@@ -3,9 +3,9 @@
 
 use burn::tensor::Device;
 use tweezer_gym::{EnvConfig, ImageConfig, RandomSteps, Renderer, SplitMix64};
-use tweezer_learner::minibatch::minibatch_tensors;
 use tweezer_learner::replay::SampledTransitions;
 use tweezer_learner::replay::{Replay, ReplayConfig};
+use tweezer_learner::training::minibatch::minibatch_tensors;
 use tweezer_nets::{PaperNetworks, Scene, SetNetworks, SetShape, SphereInputs};
 
 fn sampled(config: &EnvConfig) -> SampledTransitions {

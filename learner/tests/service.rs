@@ -1,13 +1,17 @@
 //! Actors' steps over real gRPC on loopback: acknowledgements, status,
 //! malformed batches refused without touching the replay, many streams.
 
+use std::net::SocketAddr;
 use std::sync::Arc;
+use tokio::net::TcpListener;
 use tokio_stream::wrappers::ReceiverStream;
+use tokio_stream::wrappers::TcpListenerStream;
 use tonic::Code;
 use tweezer_gym::{EnvConfig, StepBounds};
-use tweezer_learner::learner_state::LearnerState;
-use tweezer_learner::loopback::{batches, serve};
+use tweezer_learner::bench::random_batches as batches;
+use tweezer_learner::ingest::service::LearnerService;
 use tweezer_learner::replay::{Replay, ReplayConfig};
+use tweezer_learner::state::LearnerState;
 use tweezer_proto::pb;
 use tweezer_proto::pb::learner_client::LearnerClient;
 
@@ -21,6 +25,18 @@ fn ingest() -> Arc<LearnerState> {
         None,
         StepBounds::for_config(&EnvConfig::default()),
     ))
+}
+
+/// Serves `shared` on an ephemeral loopback port; returns its address.
+async fn serve(shared: Arc<LearnerState>) -> std::io::Result<SocketAddr> {
+    let listener = TcpListener::bind("127.0.0.1:0").await?;
+    let addr = listener.local_addr()?;
+    tokio::spawn(
+        tonic::transport::Server::builder()
+            .add_service(LearnerService::new(shared).into_server())
+            .serve_with_incoming(TcpListenerStream::new(listener)),
+    );
+    Ok(addr)
 }
 
 type Client = LearnerClient<tonic::transport::Channel>;
@@ -186,7 +202,7 @@ async fn a_batch_resent_after_a_reconnect_is_acknowledged_not_stored_again() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_producer_held_by_back_pressure_is_released_when_its_actor_goes() {
-    use tweezer_learner::limiter::{Limiter, LimiterConfig};
+    use tweezer_learner::ingest::limiter::{Limiter, LimiterConfig};
     // Learning starts at 10 transitions and may owe at most 5 updates; no
     // learner runs, so the second batch must wait.
     let limiter = Limiter::new(LimiterConfig {
@@ -372,7 +388,7 @@ async fn no_session_can_silence_another_and_a_restarted_actor_counts_afresh() {
 
 #[test]
 fn a_session_stays_with_the_token_that_opened_it() {
-    use tweezer_learner::learner_state::{ActorBatch, Refusal};
+    use tweezer_learner::ingest::batch::{ActorBatch, Refusal};
     let ingest = ingest();
     let steps = tweezer_gym::RandomSteps::new(&EnvConfig::default(), 1, 3)
         .unwrap()
@@ -397,9 +413,7 @@ fn a_session_stays_with_the_token_that_opened_it() {
     accept(batch(0, 1), "actor-a").unwrap();
     accept(batch(0, 1), "actor-b").unwrap();
     assert_eq!(ingest.steps_inserted(), 20);
-    let tokens: Vec<_> = ingest
-        .actors()
-        .into_iter()
+    let tokens: Vec<_> = (ingest.status().actors.into_iter())
         .map(|a| (a.session, a.token))
         .collect();
     assert!(tokens.contains(&(7, Some("actor-a".into()))), "{tokens:?}");
@@ -408,7 +422,8 @@ fn a_session_stays_with_the_token_that_opened_it() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn thousands_of_actor_ids_leave_the_registry_bounded_and_the_status_small() {
     use tonic_prost::prost::Message;
-    use tweezer_learner::learner_state::{ActorBatch, MAX_SESSIONS, STATUS_ACTORS};
+    use tweezer_learner::ingest::batch::ActorBatch;
+    use tweezer_learner::ingest::sessions::{MAX_SESSIONS, STATUS_ACTORS};
     let (ingest, mut client) = connected().await;
     let step = tweezer_gym::RandomSteps::new(&EnvConfig::default(), 1, 3)
         .unwrap()

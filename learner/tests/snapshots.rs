@@ -2,7 +2,7 @@
 //! restoring the store from its checkpointed state.
 
 use burn::tensor::Device;
-use tweezer_learner::snapshots::{Selector, Snapshots, SnapshotsError};
+use tweezer_learner::persistence::snapshots::{Selector, Snapshots, SnapshotsError};
 use tweezer_nets::{ActorConfig, Architecture, EncoderConfig, SnapshotInfo, encode};
 
 fn snapshot(version: u64) -> Vec<u8> {
@@ -82,7 +82,7 @@ fn the_best_is_kept_while_older_versions_are_pruned() {
 /// passed over for an older one.
 #[test]
 fn snapshots_a_kept_checkpoint_needs_are_never_pruned() {
-    use tweezer_learner::checkpoint::{CheckpointHeader, Checkpoints};
+    use tweezer_learner::persistence::checkpoint::{CheckpointHeader, Checkpoints};
     let dir = tempfile::tempdir().unwrap();
     let snapshots_dir = dir.path().join("snapshots");
     let checkpoints = Checkpoints::open(&dir.path().join("checkpoints"), 3).unwrap();

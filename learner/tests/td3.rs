@@ -7,7 +7,7 @@ use burn::module::{Module, ModuleVisitor, Param};
 use burn::nn::{Linear, LinearConfig};
 use burn::tensor::{Bytes, Device, Distribution, Tensor, TensorData};
 use tweezer_gym::{EnvConfig, ImageConfig, Renderer, SplitMix64};
-use tweezer_learner::td3::{
+use tweezer_learner::training::td3::{
     Minibatch, Td3, Td3Config, smoothed_target_action, soft_update, td_target,
 };
 use tweezer_nets::{Networks, PaperNetworks, Scene, SetBatch, SetNetworks, SetShape};
@@ -234,8 +234,8 @@ fn batch_rewarded(reward: f32, device: &Device) -> Minibatch<Tensor<4>> {
 /// overflows f32), judged by `guard`.
 fn poisoned(
     td3: &mut Td3<PaperNetworks>,
-    guard: &mut tweezer_learner::divergence::DivergenceGuard<PaperNetworks>,
-) -> tweezer_learner::divergence::Verdict {
+    guard: &mut tweezer_learner::training::divergence::DivergenceGuard<PaperNetworks>,
+) -> tweezer_learner::training::divergence::Verdict {
     let stats = td3.update(batch_rewarded(1e38, &td3_device()));
     assert!(!stats.critic_loss.is_finite());
     guard.check(td3, &stats)
@@ -277,7 +277,7 @@ fn state(td3: &Td3<PaperNetworks>) -> Vec<(&'static str, Bytes)> {
 
 #[test]
 fn a_diverged_update_rolls_back_to_the_last_good_networks_and_repeated_ones_give_up() {
-    use tweezer_learner::divergence::{
+    use tweezer_learner::training::divergence::{
         DivergenceGuard, GOOD_RUN, MAX_ROLLBACKS, Rollback, Verdict,
     };
     let device = td3_device();
@@ -326,8 +326,8 @@ fn a_diverged_update_rolls_back_to_the_last_good_networks_and_repeated_ones_give
 
 #[test]
 fn a_diverged_update_rolls_back_to_the_newest_checkpoint_then_to_older_ones() {
-    use tweezer_learner::checkpoint::{CheckpointHeader, Checkpoints};
-    use tweezer_learner::divergence::{DivergenceGuard, MAX_ROLLBACKS, Verdict};
+    use tweezer_learner::persistence::checkpoint::{CheckpointHeader, Checkpoints};
+    use tweezer_learner::training::divergence::{DivergenceGuard, MAX_ROLLBACKS, Verdict};
     use tweezer_nets::Architecture;
     let device = td3_device();
     let dir = tempfile::tempdir().unwrap();

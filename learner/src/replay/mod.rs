@@ -1,6 +1,6 @@
 //! The replay: compact storage of steps in a ring, which drops the oldest
 //! when full (first in, first out) and samples transitions uniformly. Its
-//! rate limiter and the waiting are the [`Table`](crate::table::Table)'s.
+//! rate limiter and the waiting are the [`Table`](crate::ingest::table::Table)'s.
 //!
 //! Steps are stored, not transitions: each step record holds the observation
 //! the action responded to (sphere centres and target vector — never pixels),

@@ -1,7 +1,7 @@
 //! Whether two trainers computed the same update, for the test crates that
 //! run one trainer beside another.
 
-use tweezer_learner::td3::UpdateStats;
+use tweezer_learner::training::td3::UpdateStats;
 
 /// Asserts that update `i` has the same critic loss, mean Q and actor step
 /// on both sides (`sides` names them), to `tolerance` relative to the

@@ -7,8 +7,8 @@
 //! learner exiting: under systemd or Slurm's auto-resume an exit would only
 //! start a crash loop.
 
-use crate::checkpoint::{CheckpointError, Checkpoints, read, read_header};
-use crate::td3::{Td3, UpdateStats};
+use crate::persistence::checkpoint::{CheckpointError, Checkpoints, read, read_header};
+use crate::training::td3::{Td3, UpdateStats};
 use serde::{Deserialize, Serialize};
 use std::path::PathBuf;
 use tweezer_nets::Networks;

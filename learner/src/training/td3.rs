@@ -25,7 +25,7 @@
 //! (`replay`), the update-to-data ratio in the rate limiter (`limiter`), and
 //! the training thread that ties them together (`trainer`).
 
-use crate::fused_updates::{FusedAdam, blend};
+use crate::training::fused_updates::{FusedAdam, blend};
 use burn::module::{Module, ModuleDisplay, ModuleMapper, ModuleVisitor, Param};
 use burn::nn::loss::{MseLoss, Reduction};
 use burn::optim::{GradientsParams, ModuleOptimizer, OptimizerRecord};

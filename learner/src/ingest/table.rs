@@ -3,7 +3,7 @@
 //! store, count — so the inserts the limiter has counted are exactly the
 //! steps the replay was given, and an update is counted as it is sampled.
 
-use crate::limiter::{Limiter, LimiterCounts, LimiterState};
+use crate::ingest::limiter::{Limiter, LimiterCounts, LimiterState};
 use crate::replay::Replay;
 use std::ops::Deref;
 use std::sync::{Condvar, Mutex, MutexGuard};
@@ -145,7 +145,7 @@ impl Inner {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::limiter::LimiterConfig;
+    use crate::ingest::limiter::LimiterConfig;
     use crate::replay::ReplayConfig;
 
     /// Nothing stored, nothing counted: a batch declined inside the

@@ -2,9 +2,12 @@
 //! acknowledgements; clients fetch snapshots in chunks; operators read
 //! status. Wire types stop here: the rest of the learner sees domain types.
 
-use crate::learner_state::{Ack, ActorBatch, ActorSummary, LearnerState, LearnerStatus, Refusal};
-use crate::limiter::limiter_state_name;
-use crate::snapshots::{Published, Selector, SnapshotsError};
+use crate::ingest::batch::{Ack, ActorBatch, Refusal};
+use crate::ingest::limiter::limiter_state_name;
+use crate::ingest::sessions::ActorSummary;
+use crate::ingest::status::LearnerStatus;
+use crate::persistence::snapshots::{Published, Selector, SnapshotsError};
+use crate::state::LearnerState;
 use std::pin::Pin;
 use std::sync::Arc;
 use tokio_stream::Stream;

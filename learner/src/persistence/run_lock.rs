@@ -4,7 +4,7 @@
 //! operating system drops it when the process ends, however it ends), and
 //! a second one is refused, naming the holder's process id.
 
-use crate::run_dir::RunDir;
+use crate::persistence::run_dir::RunDir;
 use anyhow::{Context, bail};
 use std::fs::{File, OpenOptions, TryLockError};
 use std::io::Write;

@@ -14,14 +14,14 @@
 //! of the first format, `"TWZCKPT1" | header length | header | parts... |
 //! SHA-256`, read as before.
 //!
-//! Files are written atomically ([`crate::durable_write::write_atomic`]);
+//! Files are written atomically ([`crate::persistence::durable_write::write_atomic`]);
 //! a file that is truncated or corrupt fails its checksum and resuming
 //! falls back to the previous one.
 
-use crate::durable_write::{sync_dir, write_atomic};
-use crate::episodes::Episodes;
+use crate::ingest::episodes::Episodes;
+use crate::persistence::durable_write::{sync_dir, write_atomic};
+use crate::persistence::snapshots::SnapshotsState;
 use crate::replay::Source;
-use crate::snapshots::SnapshotsState;
 use serde::{Deserialize, Serialize};
 use sha2::{Digest, Sha256};
 use std::collections::{BTreeMap, BTreeSet};

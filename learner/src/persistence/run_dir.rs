@@ -44,7 +44,8 @@ impl RunDir {
     /// `snapshots/best.safetensors`: the snapshot published at the best
     /// rolling return.
     pub fn best_snapshot(&self) -> PathBuf {
-        self.snapshots().join(crate::snapshots::BEST_FILE)
+        self.snapshots()
+            .join(crate::persistence::snapshots::BEST_FILE)
     }
 
     /// `snapshots/chosen.safetensors`: a copy of the snapshot `experiment

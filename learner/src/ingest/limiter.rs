@@ -5,7 +5,7 @@
 //!
 //! Counts are kept relative to a *base* that a restored learner resets, so
 //! restored counters can never leave both sides waiting on each other. The
-//! decisions are here; the waiting is the [`Table`](crate::table::Table)'s,
+//! decisions are here; the waiting is the [`Table`](crate::ingest::table::Table)'s,
 //! which holds the limiter with the replay it limits.
 
 use serde::{Deserialize, Serialize};

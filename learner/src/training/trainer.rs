@@ -2,13 +2,13 @@
 //! every `snapshots.every_updates` updates, metrics lines, and checkpoints
 //! periodically and when the learner stops.
 
-use crate::checkpoint::{CheckpointHeader, Checkpoints, Loaded};
 use crate::config::LearnerFile;
-use crate::divergence::{DivergenceGuard, Verdict};
-use crate::learner_state::LearnerState;
-use crate::limiter::limiter_state_name;
-use crate::minibatch::minibatch_tensors;
-use crate::td3::{Td3, UpdateStats};
+use crate::ingest::limiter::limiter_state_name;
+use crate::persistence::checkpoint::{CheckpointHeader, Checkpoints, Loaded};
+use crate::state::LearnerState;
+use crate::training::divergence::{DivergenceGuard, Verdict};
+use crate::training::minibatch::minibatch_tensors;
+use crate::training::td3::{Td3, UpdateStats};
 use anyhow::{Context, bail};
 use burn::tensor::{Bytes, Device};
 use serde::Serialize;
@@ -61,7 +61,7 @@ pub trait Training: Send {
 
     /// Trains until the shared state says stop, then writes a final
     /// checkpoint. An error (a full disk) ends training; a diverged update
-    /// does not ([`crate::divergence`]).
+    /// does not ([`crate::training::divergence`]).
     fn run(self: Box<Self>) -> anyhow::Result<()>;
 }
 
@@ -320,7 +320,7 @@ impl<N: Networks> Trainer<N> {
         }
         if let Verdict::GiveUp { .. } = verdict {
             tracing::error!(
-                rollbacks = crate::divergence::MAX_ROLLBACKS,
+                rollbacks = crate::training::divergence::MAX_ROLLBACKS,
                 updates = self.td3.updates(),
                 "training keeps diverging after rollbacks: learning is paused with the last good networks; check the TD3 settings (learning rates, reward_scale), then ResumeLearning"
             );

@@ -3,7 +3,7 @@
 //! the learner started; and the same numbers as TensorBoard scalars in an
 //! event file beside it.
 
-use crate::tensorboard::EventFile;
+use crate::persistence::tensorboard::EventFile;
 use serde::Serialize;
 use std::fs::{File, OpenOptions};
 use std::io::{self, BufWriter, Write};

@@ -1,8 +1,9 @@
 //! The learner's Prometheus metrics: what its status shows, read at each
 //! scrape, and its latency histograms.
 
-use crate::learner_state::{LearnerState, LearnerStatus};
-use crate::limiter::LimiterState;
+use crate::ingest::limiter::LimiterState;
+use crate::ingest::status::LearnerStatus;
+use crate::state::LearnerState;
 use std::sync::Arc;
 use tweezer_rpc::{MetricSample, Prometheus};
 

@@ -4,7 +4,7 @@
 //! rolling return (the model the paper took to the microscope); it is kept on
 //! disk, also as `best.safetensors`, whatever the pruning of older versions.
 
-use crate::durable_write::{link_atomic, write_bytes_atomic};
+use crate::persistence::durable_write::{link_atomic, write_bytes_atomic};
 use serde::{Deserialize, Serialize};
 use std::collections::{BTreeSet, VecDeque};
 use std::io;

@@ -4,7 +4,7 @@
 //! mask of the rows that have one.
 
 use crate::replay::SampledTransitions;
-use crate::td3::Minibatch;
+use crate::training::td3::Minibatch;
 use burn::tensor::{Device, Tensor, TensorData};
 use tweezer_nets::{Networks, Scene};
 

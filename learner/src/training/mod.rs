@@ -1,0 +1,11 @@
+//! Learning from the replay: TD3 on minibatches, the loop that paces it
+//! with the rate limiter and publishes and checkpoints, and the guard that
+//! rolls back a diverged update.
+
+pub mod divergence;
+pub mod fused_updates;
+#[cfg(any(feature = "cuda", feature = "wgpu"))]
+pub mod gpu_devices;
+pub mod minibatch;
+pub mod td3;
+pub mod trainer;
