@@ -10,20 +10,18 @@ mod prometheus_metrics;
 mod service;
 mod state;
 
-use anyhow::Context;
 use control_thread::{ControlThread, Job};
 use service::AgentService;
 use state::DaemonState;
 use std::sync::Arc;
-use tokio::net::TcpListener;
 use tweezer_gym::Baseline;
 use tweezer_hardware_agent::config::AgentConfig;
 use tweezer_hardware_agent::control::HaltKind;
 use tweezer_hardware_agent::instrument::Instrument;
 use tweezer_hardware_agent::policy_source::{LoadedPolicy, PolicyChoice};
-use tweezer_process::{StopSignals, init_logging};
+use tweezer_process::init_logging;
 use tweezer_proto::pb::hardware_agent_server::HardwareAgentServer;
-use tweezer_rpc::{Security, ServerSecurity};
+use tweezer_rpc::{Listeners, Security, ServerSecurity, Stopping};
 
 /// How long clients may stay connected after a stop signal.
 const SHUTDOWN_GRACE: std::time::Duration = std::time::Duration::from_secs(2);
@@ -65,63 +63,31 @@ pub fn serve(
         .enable_all()
         .build()?;
     let served = runtime.block_on(async {
-        let listener = TcpListener::bind(config.service.listen)
+        let listeners = Listeners::bind(
+            (config.service.listen, "service.listen"),
+            (config.service.metrics_listen).map(|listen| (listen, "service.metrics_listen")),
+        )
+        .await?;
+        tracing::info!(twin, "instrument ready");
+        let service = HardwareAgentServer::new(AgentService::new(shared.clone(), jobs.clone()));
+        let metrics = Arc::new(prometheus_metrics::prometheus(shared.clone(), frames));
+        // Telemetry subscribers that never hang up must not keep the agent
+        // alive past the grace.
+        let stopping = Stopping {
+            on_signal: "ending the episode and stopping the stages",
+            ends: std::future::pending(),
+            then: || {},
+            grace: SHUTDOWN_GRACE,
+        };
+        listeners
+            .serve(
+                "hardware-agent",
+                listener_security,
+                service,
+                metrics,
+                stopping,
+            )
             .await
-            .with_context(|| {
-                format!(
-                    "cannot listen on {} (service.listen)",
-                    config.service.listen
-                )
-            })?;
-        let addr = listener.local_addr()?;
-        let metrics =
-            match config.service.metrics_listen {
-                Some(listen) => Some(TcpListener::bind(listen).await.with_context(|| {
-                    format!("cannot listen on {listen} (service.metrics_listen)")
-                })?),
-                None => None,
-            };
-        let mut signals = StopSignals::install(&tokio::runtime::Handle::current())?;
-        tracing::info!(%addr, twin, "hardware agent serving");
-        println!("hardware-agent listening on {addr}");
-        let (stopping, mut stopped) = tokio::sync::watch::channel(false);
-        if let Some(listener) = metrics {
-            let metrics_addr = listener.local_addr()?;
-            tracing::info!(%metrics_addr, "Prometheus metrics at /metrics");
-            let security = listener_security.clone();
-            let registry = Arc::new(prometheus_metrics::prometheus(
-                shared.clone(),
-                frames.clone(),
-            ));
-            let mut done = stopped.clone();
-            tokio::spawn(async move {
-                let shutdown = async move {
-                    let _ = done.wait_for(|&s| s).await;
-                };
-                security.serve_metrics(listener, registry, shutdown).await;
-            });
-        }
-        let service = AgentService::new(shared.clone(), jobs.clone());
-        let shutdown = async move {
-            let signal = signals.recv().await;
-            tracing::info!(
-                signal,
-                "stopping: ending the episode and stopping the stages"
-            );
-            let _ = stopping.send(true);
-        };
-        let server = listener_security.serve(listener, HardwareAgentServer::new(service), shutdown);
-        // Clients get a grace period to hang up; a telemetry subscriber
-        // that never does must not keep the agent alive.
-        let grace = async {
-            let _ = stopped.wait_for(|&s| s).await;
-            tokio::time::sleep(SHUTDOWN_GRACE).await;
-            tracing::warn!("closing connections still open after the shutdown grace period");
-        };
-        tokio::select! {
-            served = server => served,
-            () = grace => Ok(()),
-        }
     });
     // Whatever ended the service, the episode ends and the motors stop.
     shared.halt.request(HaltKind::Stop);

@@ -20,10 +20,8 @@ use crate::state::LearnerState;
 use crate::training::trainer::training;
 use anyhow::{Context, bail};
 use std::sync::Arc;
-use tokio::net::TcpListener;
 use tweezer_gym::{Planner, StepBounds};
-use tweezer_process::StopSignals;
-use tweezer_rpc::{Security, ServerSecurity};
+use tweezer_rpc::{Listeners, Security, ServerSecurity, Stopping};
 
 /// How long clients may take to hang up once the learner stops.
 const SHUTDOWN_GRACE: std::time::Duration = std::time::Duration::from_secs(3);
@@ -100,16 +98,11 @@ pub fn serve(file: LearnerFile, start: Start, security: &Security) -> anyhow::Re
         .enable_all()
         .build()?;
     runtime.block_on(async {
-        let listener = TcpListener::bind(config.listen)
-            .await
-            .with_context(|| format!("cannot listen on {} (learner.listen)", config.listen))?;
-        let addr = listener.local_addr()?;
-        let metrics = match config.metrics_listen {
-            Some(listen) => Some(TcpListener::bind(listen).await.with_context(|| {
-                format!("cannot listen on {listen} (learner.metrics_listen)")
-            })?),
-            None => None,
-        };
+        let listeners = Listeners::bind(
+            (config.listen, "learner.listen"),
+            (config.metrics_listen).map(|listen| (listen, "learner.metrics_listen")),
+        )
+        .await?;
         let (trained_tx, trained_rx) = tokio::sync::oneshot::channel();
         let trainer_shared = shared.clone();
         let training = std::thread::Builder::new()
@@ -119,49 +112,25 @@ pub fn serve(file: LearnerFile, start: Start, security: &Security) -> anyhow::Re
                 trainer_shared.stop();
                 let _ = trained_tx.send(result);
             })?;
-        let mut signals = StopSignals::install(&tokio::runtime::Handle::current())?;
-        tracing::info!(%addr, run_dir = %run_dir.path().display(), "learner serving");
-        println!("learner listening on {addr}");
-        if let Some(listener) = metrics {
-            let metrics_addr = listener.local_addr()?;
-            tracing::info!(%metrics_addr, "Prometheus metrics at /metrics");
-            let (security, shared) = (listener_security.clone(), shared.clone());
-            tokio::spawn(async move {
-                let registry = Arc::new(prometheus(shared.clone()));
-                security
-                    .serve_metrics(listener, registry, shared.stopped())
-                    .await;
-            });
-        }
-        let stopped = shared.clone();
-        let shutdown = async move {
-            tokio::select! {
-                signal = signals.recv() => tracing::info!(signal, "stopping: finishing the update in flight and writing a checkpoint"),
-                () = stopped.stopped() => {}
-            }
-            stopped.stop();
+        tracing::info!(run_dir = %run_dir.path().display(), "training");
+        let service = LearnerService::new(shared.clone())
+            .with_max_message_bytes(config.max_message_bytes)
+            .into_server();
+        let stopping = Stopping {
+            on_signal: "finishing the update in flight and writing a checkpoint",
+            ends: shared.stopped(),
+            then: || shared.stop(),
+            grace: SHUTDOWN_GRACE,
         };
-        let server = listener_security.serve(
-            listener,
-            LearnerService::new(shared.clone())
-                .with_max_message_bytes(file.learner.max_message_bytes)
-                .into_server(),
-            shutdown,
-        );
-        // Clients get a grace period to hang up; one that never does (an
-        // idle connection nobody drives) must not keep the learner alive.
-        let grace = async {
-            shared.stopped().await;
-            tokio::time::sleep(SHUTDOWN_GRACE).await;
-            tracing::warn!("closing connections still open after the shutdown grace period");
-        };
-        let served = tokio::select! {
-            served = server => served,
-            () = grace => Ok(()),
-        };
+        let metrics = Arc::new(prometheus(shared.clone()));
+        let served = listeners
+            .serve("learner", listener_security, service, metrics, stopping)
+            .await;
         shared.stop();
         let trained = trained_rx.await.unwrap_or_else(|_| {
-            Err(anyhow::anyhow!("the training thread ended without a result"))
+            Err(anyhow::anyhow!(
+                "the training thread ended without a result"
+            ))
         });
         let _ = training.join();
         served?;

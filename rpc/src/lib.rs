@@ -5,13 +5,15 @@
 //! every call ([`access`] lists what each RPC needs). Services get health
 //! checking, reflection and a span per request ([`ServerSecurity::serve`]);
 //! clients get channels that send their token ([`ClientSecurity`]); each
-//! process exposes its [`Prometheus`] metrics the same way.
+//! process exposes its [`Prometheus`] metrics the same way, and every
+//! service runs from bind to exit alike ([`Listeners`]).
 
 pub mod access;
 mod authorize;
 pub mod certs;
 mod client;
 mod guarded_listener;
+mod lifecycle;
 mod loopback_credentials;
 mod metrics_endpoint;
 mod private_file;
@@ -23,6 +25,7 @@ mod tokens;
 pub use authorize::Caller;
 pub use client::{AuthChannel, Bearer, ClientSecurity, ConnectError, hint, learner_status};
 pub use guarded_listener::{ListenerLimits, raise_open_files_limit};
+pub use lifecycle::{Listeners, Stopping};
 pub use loopback_credentials::LoopbackCredentials;
 pub use private_file::{append_private, create_private};
 pub use prometheus::{Histogram, MetricSample, Prometheus, latency_buckets};
