@@ -9,7 +9,7 @@ use tweezer_config::ConfigError;
 use tweezer_gym::{
     Action, Env, EnvConfig, Frame, ImageConfig, Outcome, Policy, Renderer, UniformRandom, VecEnv,
 };
-use tweezer_nets::{Architecture, NetworkPolicy, Networks, SetShape, WithNetworks};
+use tweezer_nets::{Architecture, NetworkPolicy, Networks, SetShape, with_networks};
 
 /// The networks an actor runs: the paper's CNN at its resolution and at the
 /// quick preset's, and the lean preset's set network.
@@ -187,14 +187,6 @@ fn acting(
     let (name, image) = network;
     let mut config = config.clone();
     let device = Device::flex();
-    struct Untrained<'a>(&'a Device);
-    impl WithNetworks for Untrained<'_> {
-        type Output = NetworkPolicy;
-        fn with<N: Networks>(self, networks: N) -> NetworkPolicy {
-            let actor = networks.actor(self.0);
-            NetworkPolicy::new(networks, actor, self.0.clone())
-        }
-    }
     let architecture = match image {
         Some([width, height]) => {
             config.image = ImageConfig { width, height };
@@ -205,7 +197,10 @@ fn acting(
         }
         None => Architecture::Set(SetShape::new(config.fov_px)),
     };
-    let mut policy = architecture.networks_for(&config, Untrained(&device))?;
+    let mut policy = with_networks!(architecture.networks(&config)?, |networks| {
+        let actor = networks.actor(&device);
+        NetworkPolicy::new(networks, actor, device.clone())
+    });
     let mut infer = |n: usize| -> Result<f64, ConfigError> {
         let vec_env = VecEnv::new(&config, n, 11)?;
         let mut actions = vec![Action::ZERO; n];

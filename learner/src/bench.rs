@@ -14,7 +14,7 @@ use std::time::{Duration, Instant};
 use tokio::net::TcpListener;
 use tweezer_config::ConfigError;
 use tweezer_gym::{EnvConfig, RandomSteps, SplitMix64, StepBounds};
-use tweezer_nets::{Networks, WithNetworks};
+use tweezer_nets::{Networks, with_networks};
 use tweezer_proto::pb;
 use tweezer_proto::pb::learner_client::LearnerClient;
 use tweezer_rpc::{ClientSecurity, LoopbackCredentials, Security, ServerSecurity};
@@ -78,10 +78,8 @@ struct TimeNetworks<'a> {
     device: &'a Device,
 }
 
-impl WithNetworks for TimeNetworks<'_> {
-    type Output = anyhow::Result<NetworkTimes>;
-
-    fn with<N: Networks>(self, networks: N) -> Self::Output {
+impl TimeNetworks<'_> {
+    fn time<N: Networks>(self, networks: N) -> anyhow::Result<NetworkTimes> {
         let TimeNetworks {
             td3,
             replay,
@@ -254,16 +252,16 @@ pub fn run(
     let (network, choice, batch_size) = (&learner.network, learner.device, learner.batch_size);
     let device = &choice.device()?;
     let replay = filled_replay(env, capacity)?;
-    let networks = network.architecture(env).networks_for(
-        env,
-        TimeNetworks {
-            td3: learner.td3.clone(),
-            replay: &replay,
-            batch_size,
-            updates,
-            device,
-        },
-    )??;
+    let settings = TimeNetworks {
+        td3: learner.td3.clone(),
+        replay: &replay,
+        batch_size,
+        updates,
+        device,
+    };
+    let networks = with_networks!(network.architecture(env).networks(env)?, |networks| {
+        settings.time(networks)
+    })?;
     // The ingest runs secured as deployed: the run's credentials, and
     // plaintext files beside them.
     let dir = tempfile::tempdir()?;

@@ -40,7 +40,7 @@ pub use critic::{Critic, CriticConfig};
 pub use encoder::{Encoder, EncoderConfig};
 pub use head::{Head, HeadConfig};
 pub use images::render_images;
-pub use networks::{Networks, PaperNetworks, SetNetworks, WithNetworks};
+pub use networks::{AnyNetworks, Networks, PaperNetworks, SetNetworks};
 pub use policy::{LoadError, NetworkPolicy, PolicyFileError};
 pub use set_actor::{SetActor, SetActorConfig};
 pub use set_critic::{SetCritic, SetCriticConfig};

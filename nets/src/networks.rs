@@ -62,29 +62,40 @@ pub trait Networks: Clone + Send + Sync + 'static {
     ) -> Tensor<2>;
 }
 
-/// Work done with an architecture's networks, whichever they are: what
-/// [`Architecture::networks_for`] hands the networks to.
-pub trait WithNetworks {
-    /// What the work returns.
-    type Output;
+/// An architecture's networks, chosen at run time: code generic over
+/// [`Networks`] runs on whichever it holds through [`with_networks!`].
+#[derive(Clone, Debug)]
+pub enum AnyNetworks {
+    /// The paper's CNNs.
+    Paper(PaperNetworks),
+    /// The set networks.
+    Set(SetNetworks),
+}
 
-    /// Does the work with `networks`.
-    fn with<N: Networks>(self, networks: N) -> Self::Output;
+/// Evaluates `$body` with `$networks` bound to the concrete networks an
+/// [`AnyNetworks`] holds, compiled once for each architecture:
+/// `with_networks!(any, |networks| Trainer::new(networks, ...))`.
+#[macro_export]
+macro_rules! with_networks {
+    ($any:expr, |$networks:ident| $body:expr) => {
+        match $any {
+            $crate::AnyNetworks::Paper($networks) => $body,
+            $crate::AnyNetworks::Set($networks) => $body,
+        }
+    };
 }
 
 impl Architecture {
-    /// Does `work` with this architecture's networks acting in `env`: a CNN
-    /// on the images `env` renders (a snapshot of another resolution is then
-    /// refused by [`crate::decode`]), a set network on `env`'s field of
-    /// view at the scale it was trained at.
-    pub fn networks_for<W: WithNetworks>(
-        &self,
-        env: &EnvConfig,
-        work: W,
-    ) -> Result<W::Output, ConfigError> {
+    /// This architecture's networks acting in `env`: a CNN on the images
+    /// `env` renders (a snapshot of another resolution is then refused by
+    /// [`crate::decode`]), a set network on `env`'s field of view at the
+    /// scale it was trained at.
+    pub fn networks(&self, env: &EnvConfig) -> Result<AnyNetworks, ConfigError> {
         Ok(match *self {
-            Self::Paper { .. } => work.with(PaperNetworks::new(Renderer::for_config(env)?)),
-            Self::Set(shape) => work.with(SetNetworks::new(shape, env.fov_px)),
+            Self::Paper { .. } => {
+                AnyNetworks::Paper(PaperNetworks::new(Renderer::for_config(env)?))
+            }
+            Self::Set(shape) => AnyNetworks::Set(SetNetworks::new(shape, env.fov_px)),
         })
     }
 }

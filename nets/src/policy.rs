@@ -2,7 +2,7 @@
 //! observations become one batch of the network's inputs (rendered images
 //! or sphere sets) and the actor runs once per call.
 
-use crate::networks::{Networks, WithNetworks};
+use crate::networks::Networks;
 use crate::snapshot::{SnapshotError, SnapshotInfo, decode, read_info};
 use crate::spheres::Scene;
 use burn::tensor::{Device, Tensor, TensorData};
@@ -80,17 +80,11 @@ impl NetworkPolicy {
         env: &EnvConfig,
         device: &Device,
     ) -> Result<(Self, SnapshotInfo), LoadError> {
-        struct Load<'a>(&'a [u8], &'a Device);
-        impl WithNetworks for Load<'_> {
-            type Output = Result<(NetworkPolicy, SnapshotInfo), SnapshotError>;
-            fn with<N: Networks>(self, networks: N) -> Self::Output {
-                let Load(bytes, device) = self;
-                let (actor, info) = decode(bytes, &networks, device)?;
-                Ok((NetworkPolicy::new(networks, actor, device.clone()), info))
-            }
-        }
-        let architecture = read_info(bytes)?.architecture;
-        Ok(architecture.networks_for(env, Load(bytes, device))??)
+        let networks = read_info(bytes)?.architecture.networks(env)?;
+        Ok(crate::with_networks!(networks, |networks| {
+            let (actor, info) = decode(bytes, &networks, device)?;
+            (NetworkPolicy::new(networks, actor, device.clone()), info)
+        }))
     }
 
     /// Loads the snapshot file at `path` for the observations of `env`.

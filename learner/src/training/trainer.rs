@@ -17,7 +17,7 @@ use std::path::PathBuf;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 use tweezer_gym::SplitMix64;
-use tweezer_nets::{Networks, SnapshotError, SnapshotInfo, WithNetworks, encode};
+use tweezer_nets::{Networks, SnapshotError, SnapshotInfo, encode, with_networks};
 
 /// Sums of update statistics between two metrics lines.
 #[derive(Default)]
@@ -74,39 +74,11 @@ pub fn training(
     resumed: Option<&Loaded>,
     device: &Device,
 ) -> anyhow::Result<Box<dyn Training>> {
-    struct Start<'a> {
-        file: &'a LearnerFile,
-        shared: Arc<LearnerState>,
-        checkpoints: Checkpoints,
-        resumed: Option<&'a Loaded>,
-        device: &'a Device,
-    }
-    impl WithNetworks for Start<'_> {
-        type Output = anyhow::Result<Box<dyn Training>>;
-        fn with<N: Networks>(self, networks: N) -> Self::Output {
-            let s = self;
-            let trainer = Trainer::new(
-                networks,
-                s.file,
-                s.shared,
-                s.checkpoints,
-                s.resumed,
-                s.device,
-            )?;
-            Ok(Box::new(trainer))
-        }
-    }
-    let architecture = file.learner.network.architecture(&file.env);
-    architecture.networks_for(
-        &file.env,
-        Start {
-            file,
-            shared,
-            checkpoints,
-            resumed,
-            device,
-        },
-    )?
+    let networks = (file.learner.network.architecture(&file.env)).networks(&file.env)?;
+    with_networks!(networks, |networks| {
+        let trainer = Trainer::new(networks, file, shared, checkpoints, resumed, device)?;
+        Ok(Box::new(trainer))
+    })
 }
 
 /// The wait before a failed checkpoint is tried again, doubling after
