@@ -5,14 +5,17 @@
 use sha2::{Digest, Sha256};
 use std::io;
 use tweezer_learner::persistence::checkpoint::{CheckpointHeader, Checkpoints, read, read_header};
+use tweezer_nets::Architecture;
 
 fn header(updates: u64) -> CheckpointHeader {
     CheckpointHeader {
         updates,
         steps_inserted: updates * 2,
         sampler_state: 77,
-        resolution: [16, 20],
-        ..CheckpointHeader::default()
+        ..CheckpointHeader::new(Architecture::Paper {
+            height: 16,
+            width: 20,
+        })
     }
 }
 
@@ -73,10 +76,10 @@ fn a_part_that_cannot_be_made_fails_the_write_and_leaves_no_file() {
     assert!(left.is_empty(), "{left:?}");
 }
 
-/// Checkpoints of the first format, the header before the parts, still
-/// resume a run.
+/// A checkpoint of the first format (the header before the parts) is
+/// refused by name, never read as corrupt data, and resuming passes over it.
 #[test]
-fn checkpoints_of_the_first_format_read_back() {
+fn checkpoints_of_the_first_format_are_refused_by_name() {
     let dir = tempfile::tempdir().unwrap();
     let mut header = header(40);
     header.parts = vec![("a".into(), 3), ("b".into(), 2)];
@@ -89,14 +92,19 @@ fn checkpoints_of_the_first_format_read_back() {
     let path = dir.path().join("ckpt-000000000040-000000000080.twz");
     std::fs::write(&path, &bytes).unwrap();
 
-    let loaded = read(&path).unwrap();
-    assert_eq!(loaded.header.updates, 40);
-    assert_eq!(loaded.part("a").unwrap(), &[1, 2, 3][..]);
-    assert_eq!(loaded.part("b").unwrap(), &[4, 5][..]);
-    assert_eq!(read_header(&path).unwrap().updates, 40);
-    let (found, _) = Checkpoints::open(dir.path(), 2)
+    for error in [
+        read(&path).unwrap_err().to_string(),
+        read_header(&path).unwrap_err().to_string(),
+    ] {
+        assert!(
+            error.contains("first format") && error.contains("start a new run"),
+            "{error}"
+        );
+    }
+    let (found, skipped) = Checkpoints::open(dir.path(), 2)
         .unwrap()
         .newest_valid()
         .unwrap();
-    assert_eq!(found.unwrap().header.updates, 40);
+    assert!(found.is_none());
+    assert_eq!(skipped.len(), 1, "{skipped:?}");
 }

@@ -95,7 +95,10 @@ fn snapshots_a_kept_checkpoint_needs_are_never_pruned() {
         let header = CheckpointHeader {
             updates,
             snapshots: store.state(),
-            ..CheckpointHeader::default()
+            ..CheckpointHeader::new(tweezer_nets::Architecture::Paper {
+                height: 16,
+                width: 20,
+            })
         };
         checkpoints.write::<Vec<u8>>(header, []).unwrap();
         store.pin(checkpoints.needed_snapshots());

@@ -335,8 +335,7 @@ fn a_diverged_update_rolls_back_to_the_newest_checkpoint_then_to_older_ones() {
     let save = |td3: &Td3<PaperNetworks>, architecture: Architecture| {
         let header = CheckpointHeader {
             updates: td3.updates(),
-            architecture: Some(architecture),
-            ..CheckpointHeader::default()
+            ..CheckpointHeader::new(architecture)
         };
         checkpoints
             .write(header, state(td3).into_iter().map(Ok))

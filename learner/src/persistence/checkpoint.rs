@@ -10,9 +10,7 @@
 //!
 //! The header, which names the parts and their lengths, comes last so that
 //! each part is written as soon as it is serialised and dropped before the
-//! next: a checkpoint never holds the whole state twice in memory. Files
-//! of the first format, `"TWZCKPT1" | header length | header | parts... |
-//! SHA-256`, read as before.
+//! next: a checkpoint never holds the whole state twice in memory.
 //!
 //! Files are written atomically ([`crate::persistence::durable_write::write_atomic`]);
 //! a file that is truncated or corrupt fails its checksum and resuming
@@ -31,12 +29,10 @@ use std::path::{Path, PathBuf};
 use tweezer_nets::Architecture;
 
 const MAGIC: &[u8; 8] = b"TWZCKPT2";
-/// The first format's magic: the header before the parts.
-const MAGIC_HEADER_FIRST: &[u8; 8] = b"TWZCKPT1";
 const EXTENSION: &str = "twz";
 
 /// The learner's state besides the tensors.
-#[derive(Clone, Debug, Default, Serialize, Deserialize)]
+#[derive(Clone, Debug, Serialize, Deserialize)]
 pub struct CheckpointHeader {
     /// TD3 updates made.
     pub updates: u64,
@@ -44,31 +40,32 @@ pub struct CheckpointHeader {
     pub steps_inserted: u64,
     /// Replay sampler state ([`tweezer_gym::SplitMix64::state`]).
     pub sampler_state: u64,
-    /// Image resolution the CNNs take: (height, width); zeros for sets.
-    /// Checkpoints without `architecture` hold the paper's CNNs.
-    pub resolution: [usize; 2],
     /// The networks trained.
-    #[serde(default)]
-    pub architecture: Option<Architecture>,
+    pub architecture: Architecture,
     /// Finished episodes and the rolling window.
     pub episodes: Episodes,
     /// Published snapshots.
     pub snapshots: SnapshotsState,
-    /// Each actor session's last stored batch (checkpoints before sessions
-    /// have none: their actors' resent batches may be stored twice).
-    #[serde(default)]
+    /// Each actor session's last stored batch.
     pub sessions: Vec<SessionState>,
     /// Names and lengths of the binary parts, in file order.
     pub parts: Vec<(String, u64)>,
 }
 
 impl CheckpointHeader {
-    /// The networks the checkpoint holds.
-    pub fn architecture(&self) -> Architecture {
-        self.architecture.unwrap_or(Architecture::Paper {
-            height: self.resolution[0],
-            width: self.resolution[1],
-        })
+    /// The header of a run of `architecture` that has learned nothing yet:
+    /// no update, no step, no episode, no snapshot, no part.
+    pub fn new(architecture: Architecture) -> Self {
+        Self {
+            updates: 0,
+            steps_inserted: 0,
+            sampler_state: 0,
+            architecture,
+            episodes: Episodes::default(),
+            snapshots: SnapshotsState::default(),
+            sessions: Vec::new(),
+            parts: Vec::new(),
+        }
     }
 }
 
@@ -294,26 +291,19 @@ pub fn read_header(path: &Path) -> Result<CheckpointHeader, CheckpointError> {
         }
         Ok(len)
     };
-    let len = match &magic {
-        // The header's length and the header follow the magic.
-        MAGIC_HEADER_FIRST => read_length(&mut file)?,
-        // The length sits before the digest at the end, the header before it.
-        MAGIC => {
-            let length_at = size
-                .checked_sub(32 + 8)
-                .filter(|at| *at >= 8)
-                .ok_or_else(|| corrupt("cut short".into()))?;
-            file.seek(SeekFrom::Start(length_at)).map_err(io_error)?;
-            let len = read_length(&mut file)?;
-            let header_at = length_at
-                .checked_sub(len)
-                .filter(|at| *at >= 8)
-                .ok_or_else(|| corrupt("header length beyond the file".into()))?;
-            file.seek(SeekFrom::Start(header_at)).map_err(io_error)?;
-            len
-        }
-        _ => return Err(corrupt("not a checkpoint file".into())),
-    };
+    check_magic(&magic).map_err(corrupt)?;
+    // The length sits before the digest at the end, the header before it.
+    let length_at = size
+        .checked_sub(32 + 8)
+        .filter(|at| *at >= 8)
+        .ok_or_else(|| corrupt("cut short".into()))?;
+    file.seek(SeekFrom::Start(length_at)).map_err(io_error)?;
+    let len = read_length(&mut file)?;
+    let header_at = length_at
+        .checked_sub(len)
+        .filter(|at| *at >= 8)
+        .ok_or_else(|| corrupt("header length beyond the file".into()))?;
+    file.seek(SeekFrom::Start(header_at)).map_err(io_error)?;
     let mut json = vec![0; len as usize];
     file.read_exact(&mut json).map_err(io_error)?;
     serde_json::from_slice(&json).map_err(|e| corrupt(format!("header: {e}")))
@@ -329,11 +319,9 @@ pub fn read(path: &Path) -> Result<Loaded, CheckpointError> {
         path: path.into(),
         source,
     })?;
-    let magic = bytes.get(..MAGIC.len());
-    if bytes.len() < MAGIC.len() + 8 + 32
-        || (magic != Some(&MAGIC[..]) && magic != Some(&MAGIC_HEADER_FIRST[..]))
-    {
-        return Err(corrupt("not a checkpoint file, or cut short".into()));
+    check_magic(bytes.get(..MAGIC.len()).unwrap_or(&bytes)).map_err(corrupt)?;
+    if bytes.len() < MAGIC.len() + 8 + 32 {
+        return Err(corrupt("cut short".into()));
     }
     let (body, digest) = bytes.split_at(bytes.len() - 32);
     if Sha256::digest(body).as_slice() != digest {
@@ -342,26 +330,17 @@ pub fn read(path: &Path) -> Result<Loaded, CheckpointError> {
         ));
     }
     let length = |at: usize| u64::from_le_bytes(body[at..at + 8].try_into().expect("8 bytes"));
-    // Where the header lies and where the parts do.
-    let (json, parts_at, parts_end) = if magic == Some(&MAGIC_HEADER_FIRST[..]) {
-        let json_len = length(8) as usize;
-        let end = 16usize.saturating_add(json_len);
-        let json = body
-            .get(16..end)
-            .ok_or_else(|| corrupt("header length beyond the file".into()))?;
-        (json, end, body.len())
-    } else {
-        let end = body.len() - 8;
-        let start = end
-            .checked_sub(length(end) as usize)
-            .filter(|start| *start >= 8)
-            .ok_or_else(|| corrupt("header length beyond the file".into()))?;
-        (&body[start..end], 8, start)
-    };
+    // The parts lie between the magic and the header.
+    let end = body.len() - 8;
+    let start = end
+        .checked_sub(length(end) as usize)
+        .filter(|start| *start >= 8)
+        .ok_or_else(|| corrupt("header length beyond the file".into()))?;
+    let (json, parts_end) = (&body[start..end], start);
     let header: CheckpointHeader =
         serde_json::from_slice(json).map_err(|e| corrupt(format!("header: {e}")))?;
     let mut parts = BTreeMap::new();
-    let mut at = parts_at;
+    let mut at = MAGIC.len();
     for (name, len) in &header.parts {
         let end = at.saturating_add(*len as usize);
         if end > parts_end {
@@ -379,6 +358,18 @@ pub fn read(path: &Path) -> Result<Loaded, CheckpointError> {
         bytes,
         parts,
     })
+}
+
+/// Refuses a file that does not start as a checkpoint of this format.
+fn check_magic(magic: &[u8]) -> Result<(), String> {
+    match magic {
+        m if m == MAGIC => Ok(()),
+        b"TWZCKPT1" => Err(
+            "a checkpoint of the first format, which this learner does not read: start a new run"
+                .into(),
+        ),
+        _ => Err("not a checkpoint file".into()),
+    }
 }
 
 /// A writer that hashes what passes through it.

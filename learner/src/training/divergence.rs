@@ -227,7 +227,7 @@ fn candidates<N: Networks>(
     let mut files = checkpoints.list()?;
     files.retain(|path| {
         read_header(path).is_ok_and(|header| {
-            header.updates <= td3.updates() && header.architecture() == architecture
+            header.updates <= td3.updates() && header.architecture == architecture
         })
     });
     Ok(files)

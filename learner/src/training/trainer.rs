@@ -143,7 +143,7 @@ impl<N: Networks> Trainer<N> {
         let mut sampler = SplitMix64::derived(config.seed, 0x5a3_91e);
         if let Some(loaded) = resumed {
             let header = &loaded.header;
-            let trained = header.architecture();
+            let trained = header.architecture;
             if trained != architecture {
                 bail!(
                     "checkpoint {} holds other networks than the config trains: {}",
@@ -470,13 +470,7 @@ impl<N: Networks> Trainer<N> {
             updates: self.td3.updates(),
             steps_inserted: captured.steps_inserted,
             sampler_state: self.sampler.state(),
-            resolution: self
-                .td3
-                .networks()
-                .architecture()
-                .image()
-                .map_or([0, 0], |(h, w)| [h, w]),
-            architecture: Some(self.td3.networks().architecture()),
+            architecture: self.td3.networks().architecture(),
             episodes: captured.episodes,
             snapshots: self
                 .shared
