@@ -7,8 +7,9 @@ use burn::module::{Module, ModuleVisitor, Param};
 use burn::nn::{Linear, LinearConfig};
 use burn::tensor::{Bytes, Device, Distribution, Tensor, TensorData};
 use tweezer_gym::{EnvConfig, ImageConfig, Renderer, SplitMix64};
+use tweezer_learner::training::module_updates::soft_update;
 use tweezer_learner::training::td3::{
-    Minibatch, Td3, Td3Config, smoothed_target_action, soft_update, td_target,
+    Minibatch, Td3, Td3Config, smoothed_target_action, td_target,
 };
 use tweezer_nets::{Networks, PaperNetworks, Scene, SetBatch, SetNetworks, SetShape};
 

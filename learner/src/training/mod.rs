@@ -7,5 +7,7 @@ pub mod fused_updates;
 #[cfg(any(feature = "cuda", feature = "wgpu"))]
 pub mod gpu_devices;
 pub mod minibatch;
+pub mod module_updates;
+pub mod passes;
 pub mod td3;
 pub mod trainer;

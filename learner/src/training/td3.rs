@@ -1,11 +1,11 @@
 //! TD3 (Fujimoto, van Hoof and Meger, 2018) for either architecture
-//! ([`Networks`]), in the order of the paper's pseudo-code: target actions with clipped noise, the smaller of the twin
-//! target critics, the critic loss; every `policy_delay` updates the actor
-//! loss and the soft target updates. Targets run without autodiff, so their
-//! BatchNorm layers use running statistics.
-//! On the CPU backend, passes that do not depend on each other run side by
-//! side (the TD target and the online critics, Q1 and Q2, their backward
-//! passes, π and Q1's encoder); elsewhere one after the other.
+//! ([`Networks`]), in the order of the paper's pseudo-code: target actions
+//! with clipped noise, the smaller of the twin target critics, the critic
+//! loss; every `policy_delay` updates the actor loss and the soft target
+//! updates. Targets run without autodiff, so their
+//! BatchNorm layers use running statistics. Where the passes run
+//! ([`Passes`]) and how Burn modules are stepped in place
+//! ([`crate::training::module_updates`]) live below the algorithm.
 //!
 //! Changes from the paper (`docs/spec.md`, "TD3"), each off or at the
 //! paper's value by default:
@@ -25,8 +25,12 @@
 //! (`replay`), the update-to-data ratio in the rate limiter (`limiter`), and
 //! the training thread that ties them together (`trainer`).
 
-use crate::training::fused_updates::{FusedAdam, blend};
-use burn::module::{Module, ModuleDisplay, ModuleMapper, ModuleVisitor, Param};
+use crate::training::fused_updates::FusedAdam;
+use crate::training::module_updates::{
+    merged_gradients, scalar, settle_running_statistics, soft_update_in_place, step_in_place,
+};
+use crate::training::passes::Passes;
+use burn::module::{Module, ModuleDisplay};
 use burn::nn::loss::{MseLoss, Reduction};
 use burn::optim::{GradientsParams, ModuleOptimizer, OptimizerRecord};
 use burn::store::{ModuleRecord, RecordError};
@@ -102,9 +106,8 @@ pub struct Td3<N: Networks> {
     actor_optim: ModuleOptimizer,
     critic_optim: ModuleOptimizer,
     updates: u64,
-    /// Whether the networks are on the CPU backend, where independent
-    /// passes run side by side.
-    on_cpu: bool,
+    /// How the passes run on the networks' device.
+    passes: Passes,
 }
 
 /// An independent copy, as the divergence guard's copy to roll back to
@@ -125,7 +128,7 @@ impl<N: Networks> Clone for Td3<N> {
             actor_optim: self.actor_optim.clone(),
             critic_optim: self.critic_optim.clone(),
             updates: self.updates,
-            on_cpu: self.on_cpu,
+            passes: self.passes,
         }
     }
 }
@@ -143,18 +146,66 @@ impl<N: Networks> Td3<N> {
         }
     }
 
-    /// The critics' step: targets, the critic loss, backward, Adam.
+    /// The critics' step: the TD target y from the target networks, then
+    /// MSE(Q1(s, a), y) + MSE(Q2(s, a), y) and one Adam step of both.
     pub fn critic_step(&mut self, batch: &Minibatch<N::Input>) -> CriticStats {
-        let on_cpu = self.on_cpu;
-        on_worker(on_cpu, || self.critic_step_here(batch))
+        let passes = self.passes;
+        passes.on_worker(|| {
+            let (y, (q1, q2)) = passes.side_by_side(self.td_target(batch), self.online_q(batch));
+            let mse = MseLoss::new();
+            let loss_1 = mse.forward(q1.clone(), y.clone(), Reduction::Mean);
+            let loss_2 = mse.forward(q2, y, Reduction::Mean);
+            let stats = CriticStats {
+                loss: scalar(&loss_1) + scalar(&loss_2),
+                mean_q: scalar(&q1.mean()),
+            };
+            // Each critic's parameters get gradients from their own term
+            // only: the two backward passes are independent.
+            let (grads_1, grads_2) =
+                passes.side_by_side(|| loss_1.backward(), || loss_2.backward());
+            let grads = merged_gradients(grads_1, &self.critics.q1, grads_2, &self.critics.q2);
+            let stand_in = self.critics_target.clone();
+            let (optim, lr) = (&mut self.critic_optim, self.config.critic_lr);
+            step_in_place(&mut self.critics, stand_in, optim, lr, grads);
+            // The actor step needs no such call: its soft updates read both
+            // networks' statistics.
+            settle_running_statistics(&self.critics);
+            self.updates += 1;
+            stats
+        })
     }
 
-    fn critic_step_here(&mut self, batch: &Minibatch<N::Input>) -> CriticStats {
-        let c = &self.config;
+    /// Whether the delayed actor step is due after the critic steps so far
+    /// (every `policy_delay`-th).
+    pub fn actor_due(&self) -> bool {
+        self.updates.is_multiple_of(self.config.policy_delay)
+    }
+
+    /// The delayed policy step, then the soft target updates
+    /// θ' ← τ θ + (1 − τ) θ'; returns the actor's loss.
+    pub fn actor_step(&mut self, batch: Minibatch<N::Input>) -> f64 {
+        let passes = self.passes;
+        passes.on_worker(|| {
+            let loss = self.actor_loss(batch);
+            let actor_loss = scalar(&loss);
+            let grads = GradientsParams::from_grads(loss.backward(), &self.actor);
+            let stand_in = self.actor_target.clone();
+            let (optim, lr) = (&mut self.actor_optim, self.config.actor_lr);
+            step_in_place(&mut self.actor, stand_in, optim, lr, grads);
+            let tau = self.config.tau;
+            soft_update_in_place(&mut self.actor_target, &self.actor, tau);
+            soft_update_in_place(&mut self.critics_target, &self.critics, tau);
+            actor_loss
+        })
+    }
+
+    /// The TD target, as a pass to run beside others (no autodiff):
+    /// y = r + γ^n (1 − terminated) min(Q1'(s', ã), Q2'(s', ã)), with the
+    /// smoothed target action ã = clip(π'(s') + clip(ε, −c, c), −1, 1).
+    fn td_target(&self, batch: &Minibatch<N::Input>) -> impl FnOnce() -> Tensor<2> + Send + use<N> {
+        let (actor, critics) = (self.actor_target.clone(), self.critics_target.clone());
+        let (c, passes) = (self.config.clone(), self.passes);
         let Minibatch {
-            input,
-            vector,
-            action,
             reward,
             terminated,
             steps,
@@ -162,14 +213,8 @@ impl<N: Networks> Td3<N> {
             next_vector,
             ..
         } = batch.clone();
-        let on_cpu = self.on_cpu;
-
-        // The TD target (no autodiff) beside the online critics' passes.
-        let targets = (self.actor_target.clone(), self.critics_target.clone());
-        let td = move || {
-            let (actor, critics) = targets;
-            // Target policy smoothing: a' = clip(π'(s') + clip(ε, -c, c), -1, 1).
-            let target_device = next_vector.device();
+        move || {
+            let device = next_vector.device();
             let (next_input, next_vector) = (N::valid(next_input), next_vector.valid());
             let next_action = N::act(&actor, next_input.clone(), next_vector.clone());
             let noise = Tensor::<2>::random(
@@ -178,10 +223,7 @@ impl<N: Networks> Td3<N> {
                 &next_action.device(),
             );
             let next_action = smoothed_target_action(next_action, noise, c.noise_clip);
-            // Clipped double Q: y = r + γ (1 - terminated) min(Q1'(s', a'),
-            // Q2'(s', a')).
-            let (q1_next, q2_next) = side_by_side(
-                on_cpu,
+            let (q1_next, q2_next) = passes.side_by_side(
                 q_of::<N>(
                     critics.q1,
                     next_input.clone(),
@@ -198,58 +240,33 @@ impl<N: Networks> Td3<N> {
                 q2_next,
                 c.gamma,
             );
-            Tensor::from_inner(y).to_device(&target_device)
-        };
-        let critics = self.critics.clone();
-        let online = move || {
-            side_by_side(
-                on_cpu,
+            Tensor::from_inner(y).to_device(&device)
+        }
+    }
+
+    /// Q1(s, a) and Q2(s, a) of the batch's actions, as a pass.
+    fn online_q(
+        &self,
+        batch: &Minibatch<N::Input>,
+    ) -> impl FnOnce() -> (Tensor<2>, Tensor<2>) + Send + use<N> {
+        let (critics, passes) = (self.critics.clone(), self.passes);
+        let Minibatch {
+            input,
+            vector,
+            action,
+            ..
+        } = batch.clone();
+        move || {
+            passes.side_by_side(
                 q_of::<N>(critics.q1, input.clone(), vector.clone(), action.clone()),
                 q_of::<N>(critics.q2, input, vector, action),
             )
-        };
-        let (y, (q1, q2)) = side_by_side(on_cpu, td, online);
-
-        // Critic loss: MSE(Q1(s, a), y) + MSE(Q2(s, a), y). Each critic's
-        // parameters get gradients from their own term only: the two run
-        // backward side by side.
-        let mse = MseLoss::new();
-        let loss_1 = mse.forward(q1.clone(), y.clone(), Reduction::Mean);
-        let loss_2 = mse.forward(q2, y, Reduction::Mean);
-        let stats = CriticStats {
-            loss: scalar(&loss_1) + scalar(&loss_2),
-            mean_q: scalar(&q1.mean()),
-        };
-        let (grads_1, grads_2) = side_by_side(on_cpu, || loss_1.backward(), || loss_2.backward());
-        let mut grads = GradientsParams::from_grads(grads_1, &self.critics.q1);
-        self.critics.q2.visit(&mut Merge {
-            from: GradientsParams::from_grads(grads_2, &self.critics.q2),
-            into: &mut grads,
-        });
-        let optim = &mut self.critic_optim;
-        let stand_in = self.critics_target.clone();
-        replace_with(&mut self.critics, stand_in, |critics| {
-            optim.step(c.critic_lr, critics, grads)
-        });
-        settle_running_statistics(&self.critics);
-        self.updates += 1;
-        stats
+        }
     }
 
-    /// Whether the delayed actor step is due after the critic steps so far
-    /// (every `policy_delay`-th).
-    pub fn actor_due(&self) -> bool {
-        self.updates.is_multiple_of(self.config.policy_delay)
-    }
-
-    /// The delayed policy step and the soft target updates; returns the
-    /// actor's loss.
-    pub fn actor_step(&mut self, batch: Minibatch<N::Input>) -> f64 {
-        let on_cpu = self.on_cpu;
-        on_worker(on_cpu, || self.actor_step_here(batch))
-    }
-
-    fn actor_step_here(&mut self, batch: Minibatch<N::Input>) -> f64 {
+    /// The actor's loss: −Q1(s, π(s)), plus the optional action penalty and
+    /// imitation of the guide.
+    fn actor_loss(&self, batch: Minibatch<N::Input>) -> Tensor<1> {
         let c = &self.config;
         let Minibatch {
             input,
@@ -258,14 +275,10 @@ impl<N: Networks> Td3<N> {
             guided,
             ..
         } = batch;
-        // Actor loss: −Q1(s, π(s)), plus the optional action penalty and
-        // imitation of the guide.
-        // Q1's encoder features do not depend on π: computed detached, the
-        // backward pass skips Q1's encoder (its gradients would be thrown
-        // away), and they are computed beside π(s).
+        // Q1's encoder features do not depend on π: computed detached
+        // beside π(s), the backward pass skips Q1's encoder.
         let (actor, q1) = (self.actor.clone(), self.critics.q1.clone());
-        let (pi, features) = side_by_side(
-            self.on_cpu,
+        let (pi, features) = self.passes.side_by_side(
             {
                 let (input, vector) = (input.clone(), vector.clone());
                 move || N::act(&actor, input, vector)
@@ -274,7 +287,7 @@ impl<N: Networks> Td3<N> {
         );
         let penalty = pi.clone().powi_scalar(2).mean() * c.action_l2;
         let q = N::value(&self.critics.q1, features, vector, pi.clone());
-        let loss = if c.imitation > 0.0 {
+        if c.imitation > 0.0 {
             // TD3+BC: −Q / mean |Q| + w · mean over guided rows of |π − g|².
             let q_scale = q.clone().abs().mean().detach().add_scalar(1e-6);
             let miss = (pi - guide).powi_scalar(2).sum_dim(1) * guided;
@@ -282,23 +295,7 @@ impl<N: Networks> Td3<N> {
             q.mean().neg().div(q_scale) + penalty + imitation
         } else {
             q.mean().neg() + penalty
-        };
-        let actor_loss = scalar(&loss);
-        let grads = GradientsParams::from_grads(loss.backward(), &self.actor);
-        let optim = &mut self.actor_optim;
-        let stand_in = self.actor_target.clone();
-        replace_with(&mut self.actor, stand_in, |actor| {
-            optim.step(c.actor_lr, actor, grads)
-        });
-
-        let (actor, critics) = (&self.actor, &self.critics);
-        replace_with(&mut self.actor_target, actor.valid(), |target| {
-            soft_update(actor, target, c.tau)
-        });
-        replace_with(&mut self.critics_target, critics.valid(), |target| {
-            soft_update(critics, target, c.tau)
-        });
-        actor_loss
+        }
     }
 
     /// Fresh networks of `networks` on `device` (an autodiff device),
@@ -319,7 +316,7 @@ impl<N: Networks> Td3<N> {
             actor_optim: adam(&config),
             critic_optim: adam(&config),
             updates: 0,
-            on_cpu: tweezer_nets::is_cpu_backend(device),
+            passes: Passes::new(tweezer_nets::is_cpu_backend(device)),
             config,
         })
     }
@@ -338,71 +335,6 @@ impl<N: Networks> Td3<N> {
     pub fn updates(&self) -> u64 {
         self.updates
     }
-}
-
-/// Runs `step` on a worker of rayon's global pool when `on_cpu`: the CPU
-/// backend's parallel loops run there. Called from any other thread, each
-/// of those loops (hundreds in an update) is a hand-over to the pool and a
-/// wait for its result; on a worker, the step's own thread takes part in
-/// them. Elsewhere on the calling thread: a GPU runs the step's kernels
-/// from one queue (`config::DeviceChoice::device`).
-fn on_worker<R: Send>(on_cpu: bool, step: impl FnOnce() -> R + Send) -> R {
-    if on_cpu {
-        rayon::scope(|_| step())
-    } else {
-        step()
-    }
-}
-
-/// Runs `a` and `b` side by side when `on_cpu`: on the CPU backend the
-/// operations of one pass leave a core idle between them. Elsewhere one
-/// after the other: a GPU runs one pass's kernels in order.
-fn side_by_side<A: Send, B: Send>(
-    on_cpu: bool,
-    a: impl FnOnce() -> A + Send,
-    b: impl FnOnce() -> B + Send,
-) -> (A, B) {
-    if on_cpu {
-        rayon::join(a, b)
-    } else {
-        (a(), b())
-    }
-}
-
-/// Q(s, a) of `critic`, as a pass to run.
-fn q_of<N: Networks>(
-    critic: N::Critic,
-    input: N::Input,
-    vector: Tensor<2>,
-    action: Tensor<2>,
-) -> impl FnOnce() -> Tensor<2> + Send {
-    move || N::value(&critic, N::features(&critic, input), vector, action)
-}
-
-/// Moves the gradients of the visited module's parameters from `from`
-/// into `into`.
-struct Merge<'a> {
-    from: GradientsParams,
-    into: &'a mut GradientsParams,
-}
-
-impl ModuleVisitor for Merge<'_> {
-    fn visit_float<const D: usize>(&mut self, param: &Param<Tensor<D>>) {
-        if let Some(grad) = self.from.remove::<D>(param.id) {
-            self.into.register(param.id, grad);
-        }
-    }
-}
-
-/// Folds the BatchNorm running statistics that `module`'s last forward
-/// pass left pending into their values. Burn keeps each thread's update
-/// apart until something reads them all, and a training-mode forward pass
-/// reads only its own thread's: a step on another rayon worker than the
-/// last one would otherwise start from stale statistics, and the two
-/// threads' values would later be averaged. The actor step needs no call:
-/// its soft target updates read both networks' statistics.
-fn settle_running_statistics<M: Module>(module: &M) {
-    drop(module.valid());
 }
 
 /// Target policy smoothing: a' = clip(π'(s') + clip(ε, −c, c), −1, 1).
@@ -426,62 +358,14 @@ pub fn td_target(
     reward + not_done * discount * q1_next.min_pair(q2_next)
 }
 
-fn scalar<const D: usize>(t: &Tensor<D>) -> f64 {
-    f64::from(t.clone().into_scalar::<f32>())
-}
-
-/// Puts `f(module)` in `slot`, the module moved out for the call and
-/// `stand_in` (handles to another module's tensors) holding its place: an
-/// update that consumes the module is then the only owner of its tensors
-/// and writes them in place instead of copying them.
-fn replace_with<M>(slot: &mut M, stand_in: M, f: impl FnOnce(M) -> M) {
-    let module = std::mem::replace(slot, stand_in);
-    *slot = f(module);
-}
-
-/// θ' ← τ θ + (1 − τ) θ', written over the target's tensors where nothing
-/// else holds them. The result starts as an inference copy of the online
-/// module, so BatchNorm running statistics follow the online ones.
-pub fn soft_update<M: Module>(online: &M, target: M, tau: f64) -> M {
-    let mut old = Drain(Vec::new());
-    drop(target.map(&mut old));
-    online.valid().map(&mut Blend {
-        old: old.0.into_iter(),
-        tau,
-    })
-}
-
-/// Takes every float parameter out of a module, flattened, in visiting
-/// order, leaving one-element stand-ins in the module.
-struct Drain(Vec<Tensor<1>>);
-
-impl ModuleMapper for Drain {
-    fn map_float<const D: usize>(&mut self, param: Param<Tensor<D>>) -> Param<Tensor<D>> {
-        let (id, t, mapper) = param.consume();
-        let stand_in = Tensor::zeros([1; D], &t.device());
-        let n = t.shape().num_elements();
-        self.0.push(t.reshape([n]));
-        Param::from_mapped_value(id, stand_in, mapper)
-    }
-}
-
-/// Blends each parameter with the target's old value.
-struct Blend {
-    old: std::vec::IntoIter<Tensor<1>>,
-    tau: f64,
-}
-
-impl ModuleMapper for Blend {
-    fn map_float<const D: usize>(&mut self, param: Param<Tensor<D>>) -> Param<Tensor<D>> {
-        let (id, online, mapper) = param.consume();
-        let old = self
-            .old
-            .next()
-            .expect("target and online modules have the same parameters")
-            .reshape(online.shape());
-        let blended = blend(online, old, self.tau);
-        Param::from_mapped_value(id, blended, mapper)
-    }
+/// Q(s, a) of `critic`, as a pass to run.
+fn q_of<N: Networks>(
+    critic: N::Critic,
+    input: N::Input,
+    vector: Tensor<2>,
+    action: Tensor<2>,
+) -> impl FnOnce() -> Tensor<2> + Send {
+    move || N::value(&critic, N::features(&critic, input), vector, action)
 }
 
 /// TD3's hyper-parameters; defaults are `docs/spec.md` §4.
