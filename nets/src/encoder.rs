@@ -1,8 +1,6 @@
 //! The convolutional trunk both networks share in shape (not in weights).
 
-use crate::batch_conv::{self, batch_conv2d};
-use crate::batch_linear::batch_linear;
-use crate::batch_norm::{batch_norm_relu_inference, batch_norm_relu_training};
+use crate::cpu_kernels::{self, batch_norm_relu_inference, batch_norm_relu_training};
 use burn::config::Config;
 use burn::module::Module;
 use burn::nn::conv::{Conv2d, Conv2dConfig};
@@ -110,24 +108,24 @@ impl Encoder {
 }
 
 /// `layer` applied to `x`: on the CPU with its weight gradient computed
-/// in one pass ([`batch_linear`]), elsewhere by Burn.
+/// in one pass ([`cpu_kernels::linear`]), elsewhere by Burn.
 fn linear(layer: &Linear, x: Tensor<2>) -> Tensor<2> {
     match &layer.bias {
-        Some(bias) if batch_conv::is_cpu_backend(&x.device()) => {
-            batch_linear(x, layer.weight.val(), bias.val())
+        Some(bias) if cpu_kernels::is_cpu_backend(&x.device()) => {
+            cpu_kernels::linear(x, layer.weight.val(), bias.val())
         }
         _ => layer.forward(x),
     }
 }
 
 /// `layer` applied to `x`: on the CPU as one matrix product over the batch
-/// ([`batch_conv`]), elsewhere by Burn.
+/// ([`cpu_kernels::conv2d`]), elsewhere by Burn.
 fn conv(layer: &Conv2d, x: Tensor<4>) -> Tensor<4> {
     match (&layer.bias, &layer.padding) {
         (Some(bias), PaddingConfig2d::Explicit(p, _, _, _))
-            if batch_conv::is_cpu_backend(&x.device()) =>
+            if cpu_kernels::is_cpu_backend(&x.device()) =>
         {
-            batch_conv2d(x, layer.weight.val(), bias.val(), layer.stride[0], *p)
+            cpu_kernels::conv2d(x, layer.weight.val(), bias.val(), layer.stride[0], *p)
         }
         _ => layer.forward(x),
     }
@@ -138,7 +136,7 @@ fn conv(layer: &Conv2d, x: Tensor<4>) -> Tensor<4> {
 /// elsewhere by Burn.
 fn norm_relu(layer: &BatchNorm, x: Tensor<4>) -> Tensor<4> {
     let device = x.device();
-    match (batch_conv::is_cpu_backend(&device), device.is_autodiff()) {
+    match (cpu_kernels::is_cpu_backend(&device), device.is_autodiff()) {
         (true, false) => batch_norm_relu_inference(layer, x),
         (true, true) if layer.training.is_enabled() => batch_norm_relu_training(layer, x),
         _ => relu(layer.forward(x)),

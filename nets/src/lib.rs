@@ -14,9 +14,7 @@
 
 mod actor;
 mod architecture;
-mod batch_conv;
-mod batch_linear;
-mod batch_norm;
+pub mod cpu_kernels;
 mod critic;
 mod encoder;
 mod head;
@@ -34,8 +32,6 @@ pub use architecture::{
     Architecture, ArchitectureError, PAPER_ARCHITECTURE, Pooling, SET_ARCHITECTURE, SetShape,
     SphereInputs,
 };
-pub use batch_conv::is_cpu_backend;
-pub use batch_linear::{FactoredGradient, FactoredGradientError};
 pub use critic::{Critic, CriticConfig};
 pub use encoder::{Encoder, EncoderConfig};
 pub use head::{Head, HeadConfig};

@@ -3,10 +3,10 @@
 //! thread's running statistics apart until they are read, and gradients
 //! come per loss. Each helper says which it answers.
 
-use crate::training::fused_updates::blend;
 use burn::module::{Module, ModuleMapper, ModuleVisitor, Param};
 use burn::optim::{GradientsParams, ModuleOptimizer};
 use burn::tensor::{Gradients, Tensor};
+use tweezer_nets::cpu_kernels::blend;
 
 /// One optimiser step of `module` with `grads` at learning rate `lr`.
 /// The module is moved out for the step and `stand_in` (handles to another

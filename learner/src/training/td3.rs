@@ -25,7 +25,6 @@
 //! (`replay`), the update-to-data ratio in the rate limiter (`limiter`), and
 //! the training thread that ties them together (`trainer`).
 
-use crate::training::fused_updates::FusedAdam;
 use crate::training::module_updates::{
     merged_gradients, scalar, settle_running_statistics, soft_update_in_place, step_in_place,
 };
@@ -37,7 +36,7 @@ use burn::store::{ModuleRecord, RecordError};
 use burn::tensor::{Bytes, Device, Distribution, Tensor};
 use serde::{Deserialize, Serialize};
 use tweezer_config::ConfigError;
-use tweezer_nets::Networks;
+use tweezer_nets::{Networks, cpu_kernels};
 
 /// A batch of transitions as tensors, on the training device; `I` is the
 /// networks' input (images or sphere sets).
@@ -316,7 +315,7 @@ impl<N: Networks> Td3<N> {
             actor_optim: adam(&config),
             critic_optim: adam(&config),
             updates: 0,
-            passes: Passes::new(tweezer_nets::is_cpu_backend(device)),
+            passes: Passes::new(cpu_kernels::is_cpu_backend(device)),
             config,
         })
     }
@@ -480,9 +479,10 @@ impl Td3Config {
     }
 }
 
-/// Adam with the configured epsilon, fused on the CPU.
+/// Adam with the configured epsilon: the optimiser the CPU kernels'
+/// factored gradients require.
 fn adam(config: &Td3Config) -> ModuleOptimizer {
-    ModuleOptimizer::from(FusedAdam::new(config.adam_epsilon as f32))
+    cpu_kernels::adam(config.adam_epsilon as f32)
 }
 
 impl<N: Networks> Td3<N> {

@@ -22,15 +22,16 @@
 //! Burn's to 1e-4, forward and gradients. Other devices (wgpu, cuda) keep
 //! Burn's convolution.
 
+use super::tensor;
 use burn::backend::autodiff::NodeId;
 use burn::backend::autodiff::checkpoint::base::Checkpointer;
 use burn::backend::autodiff::checkpoint::strategy::CheckpointStrategy;
 use burn::backend::autodiff::grads::Gradients;
 use burn::backend::autodiff::ops::{Backward, Ops, OpsKind};
 use burn::backend::tensor::FloatTensor;
-use burn::backend::{Autodiff, Backend, Dispatch, DispatchDevice, Flex, backend_extension};
-use burn::tensor::{Bytes, DType, Shape, Tensor};
-use burn_flex::{FlexTensor, Layout};
+use burn::backend::{Autodiff, Backend, Dispatch, Flex, backend_extension};
+use burn::tensor::{Shape, Tensor};
+use burn_flex::FlexTensor;
 use rayon::prelude::*;
 use std::cell::RefCell;
 use std::ops::Range;
@@ -38,10 +39,10 @@ use std::ops::Range;
 /// A convolution with square kernels, equal stride and padding on both
 /// axes, and a bias: what the encoder's three layers are.
 #[backend_extension(Flex, Autodiff)]
-pub trait BatchConv: Backend {
+pub trait Conv2dKernel: Backend {
     /// `x` `[batch, in, h, w]`, `weight` `[out, in, k, k]`, `bias` `[out]`
     /// → `[batch, out, oh, ow]`.
-    fn batch_conv2d(
+    fn conv2d(
         x: FloatTensor<Self>,
         weight: FloatTensor<Self>,
         bias: FloatTensor<Self>,
@@ -50,25 +51,16 @@ pub trait BatchConv: Backend {
     ) -> FloatTensor<Self>;
 }
 
-/// Whether `device` is Burn's CPU backend (flex), with or without autodiff:
-/// where the CPU convolution and the learner's fused updates run.
-pub fn is_cpu_backend(device: &burn::tensor::Device) -> bool {
-    matches!(
-        device.clone().inner().as_dispatch(),
-        DispatchDevice::Flex(_)
-    )
-}
-
-/// The convolution of `x` by `weight` and `bias` (see [`BatchConv`]); only
-/// on devices where [`is_cpu_backend`] holds.
-pub fn batch_conv2d(
+/// The convolution of `x` by `weight` and `bias` (see [`Conv2dKernel`]); only
+/// on devices where [`is_cpu_backend`](super::is_cpu_backend) holds.
+pub fn conv2d(
     x: Tensor<4>,
     weight: Tensor<4>,
     bias: Tensor<1>,
     stride: usize,
     padding: usize,
 ) -> Tensor<4> {
-    Tensor::from_dispatch(<Dispatch as BatchConv>::batch_conv2d(
+    Tensor::from_dispatch(<Dispatch as Conv2dKernel>::conv2d(
         x.into_dispatch(),
         weight.into_dispatch(),
         bias.into_dispatch(),
@@ -77,8 +69,8 @@ pub fn batch_conv2d(
     ))
 }
 
-impl BatchConv for Flex {
-    fn batch_conv2d(
+impl Conv2dKernel for Flex {
+    fn conv2d(
         x: FlexTensor,
         weight: FlexTensor,
         bias: FlexTensor,
@@ -97,9 +89,9 @@ impl BatchConv for Flex {
 
 /// The backward step: which inputs need gradients is known only then.
 #[derive(Debug)]
-struct BatchConvBackward;
+struct Conv2dBackward;
 
-impl Backward<Flex, 3> for BatchConvBackward {
+impl Backward<Flex, 3> for Conv2dBackward {
     /// The checkpointed input and weight, stride and padding, and the
     /// forward step's column matrix of the whole batch if it kept one.
     type State = (NodeId, NodeId, usize, usize, Option<FlexTensor>);
@@ -124,8 +116,8 @@ impl Backward<Flex, 3> for BatchConvBackward {
     }
 }
 
-impl<C: CheckpointStrategy> BatchConv for Autodiff<Flex, C> {
-    fn batch_conv2d(
+impl<C: CheckpointStrategy> Conv2dKernel for Autodiff<Flex, C> {
+    fn conv2d(
         x: FloatTensor<Self>,
         weight: FloatTensor<Self>,
         bias: FloatTensor<Self>,
@@ -139,7 +131,7 @@ impl<C: CheckpointStrategy> BatchConv for Autodiff<Flex, C> {
                 let geometry = Geometry::of(&x, &weight, stride, padding);
                 forward(&x, &weight, &bias.into_primitive(), geometry)
             };
-        match BatchConvBackward
+        match Conv2dBackward
             .prepare::<C>(nodes)
             .compute_bound()
             .stateful()
@@ -175,7 +167,7 @@ impl Geometry {
         let ws = weight.layout().shape();
         assert!(
             xs.num_dims() == 4 && ws.num_dims() == 4 && xs[1] == ws[1] && ws[2] == ws[3],
-            "batch_conv2d: input {xs:?} and weight {ws:?} do not fit"
+            "conv2d: input {xs:?} and weight {ws:?} do not fit"
         );
         let out = |size: usize| (size + 2 * padding - ws[2]) / stride + 1;
         Self {
@@ -226,15 +218,6 @@ impl Geometry {
             .min(outs);
         first.min(end)..end
     }
-}
-
-/// A contiguous f32 tensor of `shape` holding `values`.
-pub(crate) fn tensor(values: Vec<f32>, shape: impl Into<Shape>) -> FlexTensor {
-    FlexTensor::new(
-        Bytes::from_elems(values),
-        Layout::contiguous(shape.into()),
-        DType::F32,
-    )
 }
 
 thread_local! {
@@ -746,7 +729,7 @@ mod tests {
             let weight = conv.weight.val();
             let bias = conv.bias.as_ref().expect("bias").val();
             let y = if fast {
-                batch_conv2d(x.clone(), weight.clone(), bias.clone(), stride, padding)
+                conv2d(x.clone(), weight.clone(), bias.clone(), stride, padding)
             } else {
                 conv.forward(x.clone())
             };

@@ -13,7 +13,7 @@
 //! 1e-4, outputs, gradients and running statistics. Other devices keep
 //! Burn's.
 
-use crate::batch_conv::tensor;
+use super::tensor;
 use burn::backend::autodiff::NodeId;
 use burn::backend::autodiff::checkpoint::base::Checkpointer;
 use burn::backend::autodiff::checkpoint::strategy::CheckpointStrategy;

@@ -4,7 +4,7 @@
 //! At 320 × 256 the layer maps 81,920 features to 512: its weight gradient
 //! `dW = xᵀ · dy` is a 168 MB matrix of rank at most the batch size, made
 //! from 10 MB of factors. The backward step registers the factors instead
-//! ([`FactoredGradient`]), and the learner's Adam step expands them block
+//! ([`FactoredGradient`]), and [`super::adam`]'s step expands them block
 //! by block beside the weight it updates: no network that learns holds a
 //! 168 MB gradient (two at once in the critics' step), and nothing writes
 //! and reads one back. The forward product and the input gradient
@@ -23,43 +23,43 @@ use burn::tensor::Tensor;
 use burn_flex::FlexTensor;
 use pulp::{Arch, Simd, WithSimd};
 
-use crate::batch_conv::tensor;
+use super::tensor;
 
 /// A linear layer with a bias.
 #[backend_extension(Flex, Autodiff)]
-pub trait BatchLinear: Backend {
+pub trait LinearKernel: Backend {
     /// `x` `[batch, inputs]`, `weight` `[inputs, outputs]`, `bias`
     /// `[outputs]` → `x · weight + bias`, `[batch, outputs]`.
-    fn batch_linear(
+    fn linear(
         x: FloatTensor<Self>,
         weight: FloatTensor<Self>,
         bias: FloatTensor<Self>,
     ) -> FloatTensor<Self>;
 }
 
-/// `x · weight + bias` (see [`BatchLinear`]); only on devices where
-/// [`is_cpu_backend`](crate::batch_conv::is_cpu_backend) holds. The
+/// `x · weight + bias` (see [`LinearKernel`]); only on devices where
+/// [`is_cpu_backend`](super::is_cpu_backend) holds. The
 /// weight's gradient is a [`FactoredGradient`]: an optimiser must read it
 /// as one.
-pub fn batch_linear(x: Tensor<2>, weight: Tensor<2>, bias: Tensor<1>) -> Tensor<2> {
-    Tensor::from_dispatch(<Dispatch as BatchLinear>::batch_linear(
+pub fn linear(x: Tensor<2>, weight: Tensor<2>, bias: Tensor<1>) -> Tensor<2> {
+    Tensor::from_dispatch(<Dispatch as LinearKernel>::linear(
         x.into_dispatch(),
         weight.into_dispatch(),
         bias.into_dispatch(),
     ))
 }
 
-impl BatchLinear for Flex {
-    fn batch_linear(x: FlexTensor, weight: FlexTensor, bias: FlexTensor) -> FlexTensor {
+impl LinearKernel for Flex {
+    fn linear(x: FlexTensor, weight: FlexTensor, bias: FlexTensor) -> FlexTensor {
         forward(x, weight, &bias)
     }
 }
 
 /// The backward step.
 #[derive(Debug)]
-struct BatchLinearBackward;
+struct LinearBackward;
 
-impl Backward<Flex, 3> for BatchLinearBackward {
+impl Backward<Flex, 3> for LinearBackward {
     /// The checkpointed input and weight.
     type State = (NodeId, NodeId);
 
@@ -92,8 +92,8 @@ impl Backward<Flex, 3> for BatchLinearBackward {
     }
 }
 
-impl<C: CheckpointStrategy> BatchLinear for Autodiff<Flex, C> {
-    fn batch_linear(
+impl<C: CheckpointStrategy> LinearKernel for Autodiff<Flex, C> {
+    fn linear(
         x: FloatTensor<Self>,
         weight: FloatTensor<Self>,
         bias: FloatTensor<Self>,
@@ -106,7 +106,7 @@ impl<C: CheckpointStrategy> BatchLinear for Autodiff<Flex, C> {
                 &bias.into_primitive(),
             )
         };
-        match BatchLinearBackward
+        match LinearBackward
             .prepare::<C>(nodes)
             .compute_bound()
             .stateful()
@@ -125,7 +125,7 @@ fn forward(x: FlexTensor, weight: FlexTensor, bias: &FlexTensor) -> FlexTensor {
     let [rows, outputs] = weight.layout().shape().dims::<2>();
     assert!(
         rows == inputs && bias.layout().shape().num_elements() == outputs,
-        "batch_linear: input [{batch}, {inputs}], weight [{rows}, {outputs}] and bias {:?} do not fit",
+        "linear: input [{batch}, {inputs}], weight [{rows}, {outputs}] and bias {:?} do not fit",
         bias.layout().shape()
     );
     let y = burn_flex::ops::matmul::matmul(x, weight).to_contiguous();
@@ -364,7 +364,7 @@ mod tests {
             let run = |fast: bool| {
                 let (weight, bias) = (layer.weight.val(), layer.bias.as_ref().unwrap().val());
                 let y = if fast {
-                    batch_linear(x.clone(), weight.clone(), bias.clone())
+                    linear(x.clone(), weight.clone(), bias.clone())
                 } else {
                     layer.forward(x.clone())
                 };
@@ -399,7 +399,7 @@ mod tests {
         device.seed(12);
         let layer: Linear = LinearConfig::new(90, 33).init(&device);
         let x = Tensor::<2>::random([7, 90], Distribution::Normal(0.0, 1.0), &device);
-        let ours = batch_linear(
+        let ours = linear(
             x.clone(),
             layer.weight.val(),
             layer.bias.as_ref().unwrap().val(),
@@ -419,7 +419,7 @@ mod tests {
         let layer: Linear = LinearConfig::new(6, 3).init(&device);
         let (weight, bias) = (layer.weight.val(), layer.bias.as_ref().unwrap().val());
         let x = Tensor::<2>::random([4, 6], Distribution::Normal(0.0, 1.0), &device);
-        let once = batch_linear(x.clone(), weight.clone(), bias.clone());
+        let once = linear(x.clone(), weight.clone(), bias.clone());
         let grad = |y: Tensor<2>| {
             let grad = weight.grad(&y.sum().backward()).unwrap();
             let dims = grad.dims();
@@ -433,8 +433,8 @@ mod tests {
                 .is_ok()
         );
 
-        let twice = batch_linear(x.clone(), weight.clone(), bias.clone())
-            + batch_linear(x, weight.clone(), bias);
+        let twice =
+            linear(x.clone(), weight.clone(), bias.clone()) + linear(x, weight.clone(), bias);
         let (elements, dims) = grad(twice);
         let error = FactoredGradient::of(&elements, dims, [6, 3])
             .unwrap()

@@ -11,6 +11,8 @@
 //! is expanded here a few rows at a time, beside the rows it updates.
 //! Other devices (wgpu, cuda) run Burn's operations.
 
+use super::is_cpu_backend;
+use super::linear::FactoredGradient;
 use burn::backend::tensor::FloatTensor;
 use burn::backend::{Backend, Dispatch, Flex, backend_extension};
 use burn::optim::LearningRate;
@@ -19,7 +21,6 @@ use burn::tensor::{Device, Tensor};
 use burn_flex::FlexTensor;
 use pulp::{Arch, Simd, WithSimd};
 use rayon::prelude::*;
-use tweezer_nets::{FactoredGradient, is_cpu_backend};
 
 /// Elements per parallel task.
 const CHUNK: usize = 1 << 14;
