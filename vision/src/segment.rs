@@ -318,9 +318,12 @@ impl Segmenter {
                 let spheres = (area_px / (min * max).sqrt()).round().max(2.0) as usize;
                 if !clipped && area_px >= min && spheres <= self.config.max_merged {
                     let ring = self.config.ring_radius_px / bin;
-                    let centres =
-                        self.rings
-                            .split(&self.members, [w, h], &self.deviation, spheres, ring);
+                    let centres = self.rings.split(
+                        &self.members,
+                        [w, h],
+                        &self.deviation,
+                        (spheres, ring, 2.0 * f64::from(sigma)),
+                    );
                     for centre in centres {
                         found.push(Detection {
                             centre: full_resolution(centre),

@@ -5,7 +5,9 @@
 //! are the strongest peaks of that score, at least most of a radius apart,
 //! refined to sub-pixel by climbing the score sampled bilinearly.
 //! A peak much weaker than the strongest is not a sphere (out-of-focus
-//! debris merged with one, say), so a blob may yield a single centre.
+//! debris merged with one, say), so a blob may yield a single centre; nor
+//! is one whose circle is dark only where it crosses something dark (a
+//! streak of debris), so a blob may yield none.
 
 /// Points sampled on the ring.
 const RING_SAMPLES: usize = 48;
@@ -13,6 +15,9 @@ const RING_SAMPLES: usize = 48;
 const MIN_SEPARATION: f64 = 0.75;
 /// A peak below this fraction of the strongest is dropped.
 const MIN_RELATIVE_SCORE: f64 = 0.5;
+/// A peak whose ring is dark on less than this share of its circle is not
+/// a sphere: a dark streak, say, which a circle only crosses.
+const MIN_COVERAGE: f64 = 0.5;
 
 /// Scores candidate centres by how much darker the image is on a circle of
 /// the ring's radius around them than on circles just inside and outside
@@ -66,6 +71,31 @@ impl RingScore {
         };
         let [ring, inside, outside] = &self.circles;
         0.5 * (mean(inside) + mean(outside)) - mean(ring)
+    }
+
+    /// The share of the ring around pixel (x, y) that is darker, by
+    /// `margin`, than the circles just inside and outside it at the same
+    /// angle: near 1 for a sphere's ring (less where a neighbour's
+    /// overlaps it), small for a dark streak a circle only crosses.
+    fn coverage(&self, x: i64, y: i64, [w, h]: [usize; 2], deviation: &[f32], margin: f64) -> f64 {
+        let at = |p: [f64; 2]| {
+            let (sx, sy) = (x + p[0].round() as i64, y + p[1].round() as i64);
+            let inside = sx >= 0 && sy >= 0 && (sx as usize) < w && (sy as usize) < h;
+            inside.then(|| f64::from(deviation[sy as usize * w + sx as usize]))
+        };
+        let [ring, inside, outside] = &self.exact;
+        let (mut dark, mut seen) = (0usize, 0usize);
+        for ((r, i), o) in ring.iter().zip(inside).zip(outside) {
+            if let (Some(r), Some(i), Some(o)) = (at(*r), at(*i), at(*o)) {
+                seen += 1;
+                dark += usize::from(r < 0.5 * (i + o) - margin);
+            }
+        }
+        if seen == 0 {
+            0.0
+        } else {
+            dark as f64 / seen as f64
+        }
     }
 
     /// The same at a sub-pixel centre, sampling bilinearly.
@@ -131,16 +161,16 @@ impl RingScore {
 
     /// Centres (binned px) of at most `k` spheres in the blob made of the
     /// pixels `members` (indices into rows of `w`) of an image `h` rows
-    /// high, whose rings have the scorer's radius. Every pixel of the
-    /// blob's bounding box is a candidate: a ring's centre may lie in a
-    /// hole of its blob.
+    /// high, whose rings have the scorer's radius; a ring must be darker
+    /// than its surroundings by `margin` (grey levels) on most of its
+    /// circle. Every pixel of the blob's bounding box is a candidate: a
+    /// ring's centre may lie in a hole of its blob.
     pub fn split(
         &self,
         members: &[u32],
         [w, h]: [usize; 2],
         deviation: &[f32],
-        k: usize,
-        radius: f64,
+        (k, radius, margin): (usize, f64, f64),
     ) -> Vec<[f64; 2]> {
         let (mut lo, mut hi) = ([i64::MAX; 2], [i64::MIN; 2]);
         for &p in members {
@@ -168,7 +198,7 @@ impl RingScore {
                 let (dx, dy) = ((x - px) as f64, (y - py) as f64);
                 dx * dx + dy * dy >= separation2
             });
-            if apart {
+            if apart && self.coverage(x, y, [w, h], deviation, margin) >= MIN_COVERAGE {
                 peaks.push((x, y));
             }
         }
