@@ -179,114 +179,27 @@ pub fn run(
         .worker_threads(1)
         .enable_all()
         .build()?;
+    stop_on_signal(&runtime, stop.clone())?;
+    let mut actor = Actor::new(file, security, seed, runtime)?;
+    if let (Some(listen), Some(metrics)) = (config.metrics_listen, metrics) {
+        actor.serve_metrics(listen, metrics)?;
+    }
+    actor.stream(steps, &stop)?;
+    Ok(actor.summary())
+}
+
+/// Sets `stop` on SIGINT or SIGTERM.
+fn stop_on_signal(runtime: &Runtime, stop: Arc<AtomicBool>) -> std::io::Result<()> {
     let mut signals = StopSignals::install(runtime.handle())?;
-    let signalled = stop.clone();
     runtime.spawn(async move {
         let signal = signals.recv().await;
         tracing::info!(
             signal,
             "stopping once the batches in flight are acknowledged (at most 3 s)"
         );
-        signalled.store(true, Ordering::Relaxed);
+        stop.store(true, Ordering::Relaxed);
     });
-    let mut actor = Actor {
-        envs: VecEnv::new(&file.env, config.envs, seed)?,
-        actions: vec![Action::ZERO; config.envs],
-        uniform: UniformRandom::new(seed),
-        noise: SplitMix64::derived(seed, 0x0015e),
-        planner: Planner::for_config(&file.env),
-        policy: None,
-        explore_uniformly: true,
-        newest_snapshot: 0,
-        unacked: VecDeque::new(),
-        session: new_session()?,
-        next_sequence: 0,
-        steps_sent: 0,
-        returns: 0.0,
-        successes: 0,
-        report: RunReport::default(),
-        runtime,
-        file,
-        security,
-        published: Arc::new(Mutex::new(RunReport::default())),
-        batch_seconds: Histogram::new(latency_buckets()),
-    };
-    if let (Some(listen), Some(metrics)) = (config.metrics_listen, metrics) {
-        actor.serve_metrics(listen, metrics)?;
-    }
-    let mut backoff = Backoff {
-        initial: Duration::from_millis(config.reconnect_initial_ms),
-        max: Duration::from_millis(config.reconnect_max_ms),
-        next: Duration::from_millis(config.reconnect_initial_ms),
-        rng: SplitMix64::derived(seed, 0xbac0ff),
-    };
-    let mut link: Option<Link> = None;
-    let mut connections = 0u64;
-    let mut last_log = Instant::now();
-    let done = |a: &Actor| steps.is_some_and(|n| a.report.steps_acked >= n);
-    let mut stopping_since: Option<Instant> = None;
-    while !done(&actor) {
-        let stopping = stop.load(Ordering::Relaxed);
-        if stopping {
-            let since = *stopping_since.get_or_insert_with(Instant::now);
-            if actor.unacked.is_empty() {
-                break;
-            }
-            if since.elapsed() >= STOP_DRAIN {
-                tracing::warn!(
-                    batches = actor.unacked.len(),
-                    "stopping with batches unacknowledged (the learner holds them back)"
-                );
-                break;
-            }
-        }
-        let Some(open) = link.as_mut() else {
-            if stopping {
-                break;
-            }
-            match actor.connect() {
-                Ok(l) => {
-                    connections += 1;
-                    actor.report.reconnects = connections - 1;
-                    backoff.reset();
-                    link = Some(l);
-                }
-                Err(e) => {
-                    let wait = backoff.wait();
-                    tracing::warn!(error = %format!("{e:#}"), ?wait, "cannot reach the learner; retrying");
-                    std::thread::sleep(wait);
-                }
-            }
-            continue;
-        };
-        let sending = !stopping && steps.is_none_or(|n| actor.steps_sent < n);
-        let result = if sending && actor.unacked.len() < config.max_unacked {
-            actor.send_next(open)
-        } else {
-            actor.await_ack(open, Duration::from_millis(200))
-        };
-        match result {
-            Ok(()) => {}
-            Err(Broken::Link(e)) => {
-                tracing::warn!(error = %e, "lost the learner; reconnecting");
-                link = None;
-            }
-            Err(Broken::Fatal(e)) => return Err(e),
-        }
-        if last_log.elapsed() >= Duration::from_secs(10) {
-            last_log = Instant::now();
-            let r = actor.summary();
-            tracing::info!(
-                steps = r.steps_acked,
-                episodes = r.episodes,
-                mean_return = r.mean_return,
-                success_rate = r.success_rate,
-                snapshot = actor.policy.as_ref().map_or(0, |p| p.0),
-                "acting"
-            );
-        }
-    }
-    Ok(actor.summary())
+    Ok(())
 }
 
 /// Why a step of the loop failed.
@@ -298,6 +211,128 @@ enum Broken {
 }
 
 impl Actor {
+    /// An actor of `file`'s environments and settings, seeded by `seed`,
+    /// in a new session, not yet connected.
+    fn new(
+        file: ActorFile,
+        security: ClientSecurity,
+        seed: u64,
+        runtime: Runtime,
+    ) -> anyhow::Result<Self> {
+        let config = &file.actor;
+        Ok(Self {
+            envs: VecEnv::new(&file.env, config.envs, seed)?,
+            actions: vec![Action::ZERO; config.envs],
+            uniform: UniformRandom::new(seed),
+            noise: SplitMix64::derived(seed, 0x0015e),
+            planner: Planner::for_config(&file.env),
+            policy: None,
+            explore_uniformly: true,
+            newest_snapshot: 0,
+            unacked: VecDeque::new(),
+            session: new_session()?,
+            next_sequence: 0,
+            steps_sent: 0,
+            returns: 0.0,
+            successes: 0,
+            report: RunReport::default(),
+            runtime,
+            file,
+            security,
+            published: Arc::new(Mutex::new(RunReport::default())),
+            batch_seconds: Histogram::new(latency_buckets()),
+        })
+    }
+
+    /// Acts and streams batches until `steps` steps are acknowledged or
+    /// `stop` is set (then the batches in flight get [`STOP_DRAIN`] to be
+    /// acknowledged), reconnecting with backoff whenever the link breaks.
+    fn stream(&mut self, steps: Option<u64>, stop: &AtomicBool) -> anyhow::Result<()> {
+        let config = self.file.actor.clone();
+        let mut backoff = Backoff {
+            initial: Duration::from_millis(config.reconnect_initial_ms),
+            max: Duration::from_millis(config.reconnect_max_ms),
+            next: Duration::from_millis(config.reconnect_initial_ms),
+            rng: SplitMix64::derived(config.effective_seed(), 0xbac0ff),
+        };
+        let mut link: Option<Link> = None;
+        let mut connections = 0u64;
+        let mut last_log = Instant::now();
+        let mut stopping_since: Option<Instant> = None;
+        while steps.is_none_or(|n| self.report.steps_acked < n) {
+            let stopping = stop.load(Ordering::Relaxed);
+            if stopping && self.drained(*stopping_since.get_or_insert_with(Instant::now)) {
+                break;
+            }
+            let Some(open) = link.as_mut() else {
+                if stopping {
+                    break;
+                }
+                match self.connect() {
+                    Ok(l) => {
+                        connections += 1;
+                        self.report.reconnects = connections - 1;
+                        backoff.reset();
+                        link = Some(l);
+                    }
+                    Err(e) => {
+                        let wait = backoff.wait();
+                        tracing::warn!(error = %format!("{e:#}"), ?wait, "cannot reach the learner; retrying");
+                        std::thread::sleep(wait);
+                    }
+                }
+                continue;
+            };
+            let sending = !stopping && steps.is_none_or(|n| self.steps_sent < n);
+            let result = if sending && self.unacked.len() < config.max_unacked {
+                self.send_next(open)
+            } else {
+                self.await_ack(open, Duration::from_millis(200))
+            };
+            match result {
+                Ok(()) => {}
+                Err(Broken::Link(e)) => {
+                    tracing::warn!(error = %e, "lost the learner; reconnecting");
+                    link = None;
+                }
+                Err(Broken::Fatal(e)) => return Err(e),
+            }
+            if last_log.elapsed() >= Duration::from_secs(10) {
+                last_log = Instant::now();
+                self.log_progress();
+            }
+        }
+        Ok(())
+    }
+
+    /// Whether an actor stopping since `since` may stop now: every batch
+    /// acknowledged, or [`STOP_DRAIN`] spent waiting.
+    fn drained(&self, since: Instant) -> bool {
+        if self.unacked.is_empty() {
+            return true;
+        }
+        if since.elapsed() < STOP_DRAIN {
+            return false;
+        }
+        tracing::warn!(
+            batches = self.unacked.len(),
+            "stopping with batches unacknowledged (the learner holds them back)"
+        );
+        true
+    }
+
+    /// Logs the acknowledged steps, episodes and returns so far.
+    fn log_progress(&self) {
+        let r = self.summary();
+        tracing::info!(
+            steps = r.steps_acked,
+            episodes = r.episodes,
+            mean_return = r.mean_return,
+            success_rate = r.success_rate,
+            snapshot = self.policy.as_ref().map_or(0, |p| p.0),
+            "acting"
+        );
+    }
     /// Serves the actor's metrics at `listen` until the process ends.
     fn serve_metrics(
         &self,

@@ -230,10 +230,46 @@ pub fn write(runs: &[PathBuf], out: &Path, options: &ReportOptions) -> anyhow::R
         .collect::<anyhow::Result<Vec<_>>>()?;
     std::fs::create_dir_all(out).with_context(|| format!("cannot create {}", out.display()))?;
     let mut files = Vec::new();
+    let ideal = draw_rewards(&runs, out, &mut files)?;
+    let mut rows = Vec::new();
+    let best = evaluate_runs(&runs, options, &mut rows, &mut files)?;
+    rows.extend(baseline_rows(&runs, options)?);
+    if let Some((k, mut policy)) = best {
+        let run = &runs[k];
+        let pictures = draw_episodes(&run.env, &mut policy, &options.picture_seeds, out)?;
+        files.extend(pictures.written);
+    }
 
+    let seeds = describe_seeds(&options.seeds);
+    let md = out.join("eval.md");
+    let straight = (runs[0].env.ideal_steps(), runs[0].env.ideal_return());
+    std::fs::write(&md, markdown(&rows, &seeds, straight))
+        .with_context(|| format!("cannot write {}", md.display()))?;
+    files.push(md);
+    let json = out.join("eval.json");
+    files.push(json.clone());
+    let report = Report {
+        seeds,
+        rows,
+        ideal_return: ideal,
+        files,
+    };
+    std::fs::write(&json, serde_json::to_string_pretty(&report)?)
+        .with_context(|| format!("cannot write {}", json.display()))?;
+    Ok(report)
+}
+
+/// Draws Fig. 4 into `out` (listed in `files`): one curve per label over
+/// its runs, with each label's ideal return dashed (once when all are
+/// equal); returns the ideal return of each label.
+fn draw_rewards(
+    runs: &[Run],
+    out: &Path,
+    files: &mut Vec<PathBuf>,
+) -> anyhow::Result<Vec<(String, f64)>> {
     let mut curves: Vec<Curve> = Vec::new();
     let mut ideal: Vec<(String, f64)> = Vec::new();
-    for run in &runs {
+    for run in runs {
         match curves.iter_mut().find(|c| c.label == run.label) {
             Some(curve) => curve.runs.push(run.returns.clone()),
             None => {
@@ -264,9 +300,19 @@ pub fn write(runs: &[PathBuf], out: &Path, options: &ReportOptions) -> anyhow::R
         }
         Err(e) => return Err(e.into()),
     }
+    Ok(ideal)
+}
 
+/// Evaluates each run's chosen snapshot on the held-out seeds into `rows`
+/// (its copy kept as `chosen.safetensors` and listed in `files`); returns
+/// the run whose snapshot did best, with that policy.
+fn evaluate_runs(
+    runs: &[Run],
+    options: &ReportOptions,
+    rows: &mut Vec<EvalRow>,
+    files: &mut Vec<PathBuf>,
+) -> anyhow::Result<Option<(usize, NetworkPolicy)>> {
     let device = Device::flex();
-    let mut rows = Vec::new();
     let mut best: Option<(usize, NetworkPolicy, EvalSummary)> = None;
     for (k, run) in runs.iter().enumerate() {
         let validation = options.validation_seeds.as_deref();
@@ -293,8 +339,15 @@ pub fn write(runs: &[PathBuf], out: &Path, options: &ReportOptions) -> anyhow::R
             best = Some((k, chosen.policy, summary));
         }
     }
+    Ok(best.map(|(k, policy, _)| (k, policy)))
+}
+
+/// The greedy and planner baselines on the same seeds, once per distinct
+/// environment among the runs.
+fn baseline_rows(runs: &[Run], options: &ReportOptions) -> anyhow::Result<Vec<EvalRow>> {
+    let mut rows = Vec::new();
     let mut baselines: Vec<&EnvConfig> = Vec::new();
-    for run in &runs {
+    for run in runs {
         if baselines.contains(&&run.env) {
             continue;
         }
@@ -316,30 +369,7 @@ pub fn write(runs: &[PathBuf], out: &Path, options: &ReportOptions) -> anyhow::R
             });
         }
     }
-
-    if let Some((k, mut policy, _)) = best {
-        let run = &runs[k];
-        let pictures = draw_episodes(&run.env, &mut policy, &options.picture_seeds, out)?;
-        files.extend(pictures.written);
-    }
-
-    let seeds = describe_seeds(&options.seeds);
-    let md = out.join("eval.md");
-    let straight = (runs[0].env.ideal_steps(), runs[0].env.ideal_return());
-    std::fs::write(&md, markdown(&rows, &seeds, straight))
-        .with_context(|| format!("cannot write {}", md.display()))?;
-    files.push(md);
-    let json = out.join("eval.json");
-    files.push(json.clone());
-    let report = Report {
-        seeds,
-        rows,
-        ideal_return: ideal,
-        files,
-    };
-    std::fs::write(&json, serde_json::to_string_pretty(&report)?)
-        .with_context(|| format!("cannot write {}", json.display()))?;
-    Ok(report)
+    Ok(rows)
 }
 
 /// Higher success rate first, then higher mean return.

@@ -258,6 +258,10 @@ enum Ending {
     Signal(&'static str),
 }
 
+/// Runs one segment of training in `out` (a new run, or resuming it)
+/// until `limit` passes or a stop signal comes: the learner, its actors
+/// restarted when they exit, progress from the learner's status; then
+/// stops them all, the learner last with its final checkpoint.
 async fn supervise(
     file: &TrainFile,
     out: &Path,
@@ -270,7 +274,7 @@ async fn supervise(
     let logs = run.logs();
     std::fs::create_dir_all(&logs).with_context(|| format!("cannot create {}", logs.display()))?;
     let credentials = LoopbackCredentials::provision(&run.security())?;
-    let (mut learner, addr) =
+    let (learner, addr) =
         start_learner(&binaries.learner, &run, resume, &credentials.learner).await?;
     tracing::info!(
         learner = %addr,
@@ -292,91 +296,32 @@ async fn supervise(
         security: credentials.actor.clone(),
         logs: logs.clone(),
     };
-    let seed = |k: usize, restarts: u32| {
-        let session = first.steps_inserted.rotate_left(20) ^ (u64::from(restarts) << 48);
-        SplitMix64::derived(file.learner.seed ^ session, k as u64).next_u64()
-    };
-    let mut actors = Vec::new();
-    let mut restarts = vec![0u32; file.train.actors];
-    for k in 0..file.train.actors {
-        actors.push(launcher.start(k, seed(k, 0))?);
-    }
-    let mut progress = Progress::new(limit);
+    // Each segment of a run and each restart draws other seeds.
+    let session = first.steps_inserted.rotate_left(20);
+    let actors = Actors::start(launcher, file.train.actors, file.learner.seed ^ session)?;
+    let progress = Progress::new(limit);
     progress.say(&format!(
         "training in {} with {} actor(s){}; logs in {}",
         out.display(),
-        actors.len(),
+        file.train.actors,
         limit
             .map(|l| format!(" for {}", progress::clock(l)))
             .unwrap_or_default(),
         logs.display()
     ));
     let started = Instant::now();
-    let mut last = first.clone();
-    let mut ticker = tokio::time::interval(POLL);
-    let ending = loop {
-        tokio::select! {
-            signal = signals.recv() => break Ending::Signal(signal),
-            _ = ticker.tick() => {}
-        }
-        if limit.is_some_and(|l| started.elapsed() >= l) {
-            break Ending::TimeUp;
-        }
-        if let Some(result) = learner.exited() {
-            let _ = stop_actors(&mut actors).await;
-            result?;
-            bail!(
-                "the learner exited before training ended; see {}",
-                logs.join("learner.log").display()
-            );
-        }
-        for (k, actor) in actors.iter_mut().enumerate() {
-            if let Some(result) = actor.exited() {
-                restarts[k] += 1;
-                let why = result
-                    .err()
-                    .map(|e| e.to_string())
-                    .unwrap_or_else(|| "exited".into());
-                if restarts[k] > MAX_RESTARTS {
-                    let _ = stop_actors(&mut actors).await;
-                    learner.stop(Duration::from_secs(3600)).await?;
-                    bail!(
-                        "actor-{k} failed {} times; the last time: {why}",
-                        restarts[k]
-                    );
-                }
-                progress.say(&format!("restarting actor-{k}: {why}"));
-                *actor = launcher.start(k, seed(k, restarts[k]))?;
-            }
-        }
-        match status(&mut client).await {
-            Ok(s) => {
-                progress.update(&s);
-                last = s;
-            }
-            Err(e) => progress.say(&format!("no status from the learner: {e:#}")),
-        }
+    let mut running = Running {
+        learner,
+        actors,
+        client,
+        logs,
+        progress,
+        last: first.clone(),
     };
+    let ending = running.watch(limit.map(|l| started + l), signals).await?;
     let seconds = started.elapsed().as_secs_f64();
-    progress.finish();
-    let interrupted = match ending {
-        Ending::TimeUp => {
-            eprintln!("time is up: stopping the actors, then the learner (final checkpoint)");
-            false
-        }
-        Ending::Signal(signal) => {
-            eprintln!("{signal}: stopping the actors, then the learner (final checkpoint)");
-            true
-        }
-    };
-    if let Ok(s) = status(&mut client).await {
-        last = s;
-    }
-    for error in stop_actors(&mut actors).await {
-        eprintln!("{error:#}");
-    }
-    stop_learner(&mut learner).await?;
-
+    let interrupted = running.stop(ending).await?;
+    let last = running.last;
     let steps = last.steps_inserted.saturating_sub(first.steps_inserted);
     let updates = last.updates.saturating_sub(first.updates);
     let summary = TrainSummary {
@@ -387,13 +332,152 @@ async fn supervise(
         updates,
         end_to_end_steps_per_sec: steps as f64 / seconds.max(1e-9),
         updates_per_sec: updates as f64 / seconds.max(1e-9),
-        actor_restarts: restarts.iter().sum(),
+        actor_restarts: running.actors.restarts(),
     };
     RunLog::append(&run.run_log(), "experiment")
         .with_context(|| format!("cannot open {}", run.run_log().display()))?
         .write("train", &summary);
 
     Ok(summary)
+}
+
+/// A training segment's processes while it runs.
+struct Running {
+    learner: Process,
+    actors: Actors,
+    client: LearnerClient<AuthChannel>,
+    /// Where the processes' logs go.
+    logs: PathBuf,
+    progress: Progress,
+    /// The learner's newest status.
+    last: LearnerStatus,
+}
+
+impl Running {
+    /// Watches the learner and its actors every [`POLL`] until `deadline`
+    /// passes or a signal comes, restarting actors that exit and showing
+    /// the learner's status. When the learner exits, or an actor fails too
+    /// often, the rest are stopped and the error says why.
+    async fn watch(
+        &mut self,
+        deadline: Option<Instant>,
+        signals: &mut StopSignals,
+    ) -> anyhow::Result<Ending> {
+        let mut ticker = tokio::time::interval(POLL);
+        loop {
+            tokio::select! {
+                signal = signals.recv() => return Ok(Ending::Signal(signal)),
+                _ = ticker.tick() => {}
+            }
+            if deadline.is_some_and(|d| Instant::now() >= d) {
+                return Ok(Ending::TimeUp);
+            }
+            if let Some(result) = self.learner.exited() {
+                let _ = self.actors.stop().await;
+                result?;
+                bail!(
+                    "the learner exited before training ended; see {}",
+                    self.logs.join("learner.log").display()
+                );
+            }
+            if let Err(e) = self.actors.restart_exited(&mut self.progress) {
+                let _ = self.actors.stop().await;
+                self.learner.stop(Duration::from_secs(3600)).await?;
+                return Err(e);
+            }
+            match status(&mut self.client).await {
+                Ok(s) => {
+                    self.progress.update(&s);
+                    self.last = s;
+                }
+                Err(e) => (self.progress).say(&format!("no status from the learner: {e:#}")),
+            }
+        }
+    }
+
+    /// Stops the actors, then the learner (which writes its final
+    /// checkpoint), after reading the learner's status a last time;
+    /// whether a signal (not the time limit) ended training.
+    async fn stop(&mut self, ending: Ending) -> anyhow::Result<bool> {
+        self.progress.finish();
+        let (interrupted, why) = match ending {
+            Ending::TimeUp => (false, "time is up"),
+            Ending::Signal(signal) => (true, signal),
+        };
+        eprintln!("{why}: stopping the actors, then the learner (final checkpoint)");
+        if let Ok(s) = status(&mut self.client).await {
+            self.last = s;
+        }
+        for error in self.actors.stop().await {
+            eprintln!("{error:#}");
+        }
+        stop_learner(&mut self.learner).await?;
+        Ok(interrupted)
+    }
+}
+
+/// A run's actors, each restarted when it exits, up to [`MAX_RESTARTS`]
+/// times.
+struct Actors {
+    launcher: ActorLauncher,
+    running: Vec<Process>,
+    restarts: Vec<u32>,
+    /// What every actor's seed derives from.
+    seed: u64,
+}
+
+impl Actors {
+    /// Starts `count` actors with seeds derived from `seed`.
+    fn start(launcher: ActorLauncher, count: usize, seed: u64) -> anyhow::Result<Self> {
+        let mut actors = Self {
+            launcher,
+            running: Vec::with_capacity(count),
+            restarts: vec![0; count],
+            seed,
+        };
+        for k in 0..count {
+            let process = actors.launcher.start(k, actors.seed_of(k))?;
+            actors.running.push(process);
+        }
+        Ok(actors)
+    }
+
+    /// Actor `k`'s seed for its current start.
+    fn seed_of(&self, k: usize) -> u64 {
+        let restart = u64::from(self.restarts[k]) << 48;
+        SplitMix64::derived(self.seed ^ restart, k as u64).next_u64()
+    }
+
+    /// Starts again every actor that exited, saying why; an error once one
+    /// has failed more than [`MAX_RESTARTS`] times.
+    fn restart_exited(&mut self, progress: &mut Progress) -> anyhow::Result<()> {
+        for k in 0..self.running.len() {
+            let Some(result) = self.running[k].exited() else {
+                continue;
+            };
+            self.restarts[k] += 1;
+            let why = (result.err().map(|e| e.to_string())).unwrap_or_else(|| "exited".into());
+            if self.restarts[k] > MAX_RESTARTS {
+                bail!(
+                    "actor-{k} failed {} times; the last time: {why}",
+                    self.restarts[k]
+                );
+            }
+            progress.say(&format!("restarting actor-{k}: {why}"));
+            self.running[k] = self.launcher.start(k, self.seed_of(k))?;
+        }
+        Ok(())
+    }
+
+    /// Restarts so far, over all actors.
+    fn restarts(&self) -> u32 {
+        self.restarts.iter().sum()
+    }
+
+    /// Stops every actor; the errors of those that did not stop cleanly.
+    async fn stop(&mut self) -> Vec<anyhow::Error> {
+        stop_actors(&mut self.running).await
+    }
 }
 
 /// Asks the learner to stop and waits for its final checkpoint.

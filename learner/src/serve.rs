@@ -48,37 +48,9 @@ pub fn serve(file: LearnerFile, start: Start, security: &Security) -> anyhow::Re
     // refused naming the cargo feature.
     let device = config.device.device()?;
     let run_dir = &RunDir::new(&config.run_dir);
-    std::fs::create_dir_all(run_dir.path())
-        .with_context(|| format!("cannot create run directory {}", run_dir.path().display()))?;
-    let _lock = RunLock::acquire(run_dir)?;
-    for dir in [run_dir.path(), &run_dir.checkpoints(), &run_dir.snapshots()] {
-        let removed =
-            remove_leftovers(dir).with_context(|| format!("cannot clean {}", dir.display()))?;
-        for path in removed {
-            tracing::info!(path = %path.display(), "removed a temporary file an interrupted write left");
-        }
-    }
+    let _lock = open_run_dir(run_dir)?;
     let checkpoints = Checkpoints::open(&run_dir.checkpoints(), config.checkpoints.keep)?;
-    let resume = match start {
-        Start::Fresh => false,
-        Start::Resume => true,
-        Start::Auto => !checkpoints.list()?.is_empty(),
-    };
-    let keep = config.snapshots.keep;
-    let (resumed, snapshots) = if resume {
-        let (loaded, snapshots) = newest_checkpoint(&checkpoints, run_dir, keep)?;
-        (Some(loaded), snapshots)
-    } else {
-        if !checkpoints.list()?.is_empty() {
-            bail!(
-                "{} already holds a run's checkpoints: continue it with `learner serve --resume {0}`, or set another learner.run_dir",
-                run_dir.path().display()
-            );
-        }
-        write_bytes_atomic(&run_dir.config(), file.to_toml().as_bytes())
-            .context("cannot write the run's config.toml")?;
-        (None, Snapshots::create(&run_dir.snapshots(), keep)?)
-    };
+    let (resumed, snapshots) = start_run(&file, start, run_dir, &checkpoints)?;
     let shared = Arc::new(shared_state(&file, run_dir, resumed.as_ref(), snapshots)?);
     let needed = checkpoints.needed_snapshots();
     if let Some(mut snapshots) = shared.snapshots() {
@@ -136,6 +108,52 @@ pub fn serve(file: LearnerFile, start: Start, security: &Security) -> anyhow::Re
         served?;
         trained
     })
+}
+
+/// Creates `run_dir` if need be and locks it for this process, then
+/// removes the temporary files an interrupted write left there.
+fn open_run_dir(run_dir: &RunDir) -> anyhow::Result<RunLock> {
+    std::fs::create_dir_all(run_dir.path())
+        .with_context(|| format!("cannot create run directory {}", run_dir.path().display()))?;
+    let lock = RunLock::acquire(run_dir)?;
+    for dir in [run_dir.path(), &run_dir.checkpoints(), &run_dir.snapshots()] {
+        let removed =
+            remove_leftovers(dir).with_context(|| format!("cannot clean {}", dir.display()))?;
+        for path in removed {
+            tracing::info!(path = %path.display(), "removed a temporary file an interrupted write left");
+        }
+    }
+    Ok(lock)
+}
+
+/// The run as `start` says: resumed from the newest usable checkpoint
+/// with its snapshots, or new (its config.toml written, no snapshot yet;
+/// refused where checkpoints are already).
+fn start_run(
+    file: &LearnerFile,
+    start: Start,
+    run_dir: &RunDir,
+    checkpoints: &Checkpoints,
+) -> anyhow::Result<(Option<Loaded>, Snapshots)> {
+    let keep = file.learner.snapshots.keep;
+    let resume = match start {
+        Start::Fresh => false,
+        Start::Resume => true,
+        Start::Auto => !checkpoints.list()?.is_empty(),
+    };
+    if resume {
+        let (loaded, snapshots) = newest_checkpoint(checkpoints, run_dir, keep)?;
+        return Ok((Some(loaded), snapshots));
+    }
+    if !checkpoints.list()?.is_empty() {
+        bail!(
+            "{} already holds a run's checkpoints: continue it with `learner serve --resume {0}`, or set another learner.run_dir",
+            run_dir.path().display()
+        );
+    }
+    write_bytes_atomic(&run_dir.config(), file.to_toml().as_bytes())
+        .context("cannot write the run's config.toml")?;
+    Ok((None, Snapshots::create(&run_dir.snapshots(), keep)?))
 }
 
 /// The newest checkpoint that reads back whole and whose snapshots read

@@ -168,6 +168,8 @@ impl<C: Camera, P: Read + Write + Send + 'static> Rig<C, P> {
         }
     }
 
+    /// The episode's steps, each: wait for its tick, sense (frame,
+    /// spheres, stage position), observe, score, act and command, log.
     fn drive(
         &mut self,
         policy: &mut dyn Policy,
@@ -177,14 +179,10 @@ impl<C: Camera, P: Read + Write + Send + 'static> Rig<C, P> {
     ) -> Ending {
         let (start_px, target_px) = (progress.start_px, progress.target_px);
         let period = Duration::from_secs_f64(self.control.period_s());
-        let margin = Duration::from_secs_f64(self.control.deadline_margin_ms / 1000.0);
         let speed = self.control.px_per_step * self.control.rate_hz;
-        let [fw, fh] = self.env.fov_px.map(f64::from);
-        let centre = [fw / 2.0, fh / 2.0];
         let initial = (target_px[0] - start_px[0])
             .hypot(target_px[1] - start_px[1])
             .max(f64::MIN_POSITIVE);
-        let radius = self.env.sphere_radius_px();
         let started = Instant::now();
         let mut next = started;
         let mut lost = 0;
@@ -192,135 +190,189 @@ impl<C: Camera, P: Read + Write + Send + 'static> Rig<C, P> {
         let mut tracker = SphereTracker::for_config(&self.env);
         let mut action = [Action::ZERO];
         loop {
-            halt.wait_until(next);
-            let tick = Instant::now();
-            if let Some(ending) = self.interrupted(halt) {
-                return ending;
-            }
-            if tick > next + margin {
-                return Ending::Fault(format!(
-                    "step {} started {:.0} ms late, beyond the {:.0} ms margin",
-                    progress.steps,
-                    (tick - next).as_secs_f64() * 1000.0,
-                    margin.as_secs_f64() * 1000.0
-                ));
-            }
-            self.watchdog.arm(tick + period + margin);
-            let frame = match self.camera.grab() {
-                Ok(frame) => frame,
-                Err(e) => return Ending::Fault(format!("camera: {e}")),
-            };
-            let frame_in = self.camera.captured().unwrap_or_else(Instant::now);
-            let mut detections = match self.segmenter.segment(&frame) {
-                Ok(d) => d,
-                Err(e) => return Ending::Fault(format!("segmentation: {e}")),
-            };
-            for d in &mut detections {
-                d.centre = [0, 1].map(|a| d.centre[a] + self.frame_offset[a]);
-            }
-            let stage_mm = match self.stages.position_mm() {
-                Ok(mm) => mm,
-                Err(e) => return Ending::Fault(e.to_string()),
-            };
-            let position = self.stages.px(stage_mm);
-            progress.end_px = position;
-            let trapped = trapped_sphere(&detections, centre, self.control.trap_search_px);
-            observation.centres.clear();
-            observation.centres.extend(
-                detections
-                    .iter()
-                    .enumerate()
-                    .filter(|&(k, _)| Some(k) != trapped)
-                    .map(|(_, d)| d.centre.map(|v| v as f32)),
-            );
-            let detected = observation.centres.len();
-            self.overlay
-                .visible(position, [fw, fh], radius, &mut observation.centres);
-            tracker.track(
-                &observation.centres,
-                position,
-                &mut observation.displacements,
-            );
-            let remaining = [target_px[0] - position[0], target_px[1] - position[1]];
-            // Scored by the virtual environment's rule; a collision (with a
-            // free sphere or a virtual obstacle) needs the trapped sphere
-            // in view.
-            if progress.steps > 0 {
-                let hit = observation.centres.iter().any(|c| {
-                    self.env
-                        .collides([f64::from(c[0]) - centre[0], f64::from(c[1]) - centre[1]])
+            // One step; `?` ends the episode with the step's ending.
+            let step = (|| {
+                let tick = self.wait_for_tick(halt, next, progress.steps)?;
+                let sensed = self.sense()?;
+                progress.end_px = sensed.position;
+                let trapped = self.observe(&sensed, &mut tracker, &mut observation);
+                let remaining = [0, 1].map(|a| target_px[a] - sensed.position[a]);
+                if progress.steps > 0 {
+                    self.score(&observation, trapped.is_some(), remaining, progress.steps)?;
+                }
+                let Some(trapped) = trapped else {
+                    lost += 1;
+                    if lost >= self.control.lost_trap_frames {
+                        return Err(Ending::TrapLost);
+                    }
+                    return self.command(halt, [0.0; 2]);
+                };
+                lost = 0;
+                observation.vector = goal_vector(remaining, initial);
+                (observation.validate(&self.bounds))
+                    .map_err(|e| Ending::Fault(format!("observation: {e}")))?;
+                let thinking = Instant::now();
+                policy.act(&[&observation], &mut action);
+                let policy_ms = thinking.elapsed().as_secs_f64() * 1000.0;
+                let [ax, ay] = action[0].components();
+                self.command(halt, [f64::from(ax) * speed, f64::from(ay) * speed])?;
+                let latency_ms = sensed.frame_in.elapsed().as_secs_f64() * 1000.0;
+                progress.latencies.push(latency_ms);
+                on_step(&StepLog {
+                    step: progress.steps,
+                    time_s: (tick - started).as_secs_f64(),
+                    centres: observation.centres.clone(),
+                    displacements: observation.displacements.clone(),
+                    detected: sensed.detections.len() - 1,
+                    trapped: sensed.detections[trapped].centre.map(|v| v as f32),
+                    vector: observation.vector,
+                    action: [ax, ay],
+                    position_px: sensed.position,
+                    stage_mm: sensed.stage_mm,
+                    latency_ms,
+                    policy_ms,
                 });
-                let to_target = remaining[0].hypot(remaining[1]);
-                match self
-                    .env
-                    .outcome(hit && trapped.is_some(), to_target, progress.steps)
-                {
-                    Outcome::Collision => return Ending::Collision,
-                    Outcome::Success => return Ending::Success,
-                    Outcome::Timeout => return Ending::Timeout,
-                    Outcome::Running => {}
-                }
-            }
-            let Some(trapped) = trapped else {
-                lost += 1;
-                if lost >= self.control.lost_trap_frames {
-                    return Ending::TrapLost;
-                }
-                if let Err(e) = self.stages.set_velocity_px([0.0; 2]) {
-                    return Ending::Fault(e.to_string());
-                }
-                next += period;
-                continue;
-            };
-            lost = 0;
-            let mut vector = remaining.map(|v| v / initial);
-            let magnitude = vector[0].hypot(vector[1]);
-            if magnitude > 1.0 {
-                vector = vector.map(|v| v / magnitude);
-            }
-            observation.vector = vector.map(|v| v as f32);
-            if let Err(e) = observation.validate(&self.bounds) {
-                return Ending::Fault(format!("observation: {e}"));
-            }
-            let thinking = Instant::now();
-            policy.act(&[&observation], &mut action);
-            let policy_ms = thinking.elapsed().as_secs_f64() * 1000.0;
-            let [ax, ay] = action[0].components();
-            let velocity = [f64::from(ax) * speed, f64::from(ay) * speed];
-            // A stall in this step may have tripped the watchdog, or a stop
-            // come: then the stages stay as they were stopped. Checked again
-            // after the command: whoever stops records the request before
-            // stopping, so a request this second check misses is followed
-            // by its own stop, after the command.
-            if let Some(ending) = self.interrupted(halt) {
+                progress.steps += 1;
+                Ok(())
+            })();
+            if let Err(ending) = step {
                 return ending;
             }
-            if let Err(e) = self.stages.set_velocity_px(velocity) {
-                return Ending::Fault(e.to_string());
-            }
-            if let Some(ending) = self.interrupted(halt) {
-                return ending;
-            }
-            let latency_ms = frame_in.elapsed().as_secs_f64() * 1000.0;
-            progress.latencies.push(latency_ms);
-            on_step(&StepLog {
-                step: progress.steps,
-                time_s: (tick - started).as_secs_f64(),
-                centres: observation.centres.clone(),
-                displacements: observation.displacements.clone(),
-                detected,
-                trapped: detections[trapped].centre.map(|v| v as f32),
-                vector: observation.vector,
-                action: [ax, ay],
-                position_px: position,
-                stage_mm,
-                latency_ms,
-                policy_ms,
-            });
-            progress.steps += 1;
             next += period;
         }
     }
+
+    /// Waits for the tick due at `next`, then arms the watchdog for the
+    /// step; the episode ends if a halt came or the tick is later than the
+    /// margin allows.
+    fn wait_for_tick(&self, halt: &Halt, next: Instant, step: u32) -> Result<Instant, Ending> {
+        let period = Duration::from_secs_f64(self.control.period_s());
+        let margin = Duration::from_secs_f64(self.control.deadline_margin_ms / 1000.0);
+        halt.wait_until(next);
+        let tick = Instant::now();
+        if let Some(ending) = self.interrupted(halt) {
+            return Err(ending);
+        }
+        if tick > next + margin {
+            return Err(Ending::Fault(format!(
+                "step {step} started {:.0} ms late, beyond the {:.0} ms margin",
+                (tick - next).as_secs_f64() * 1000.0,
+                margin.as_secs_f64() * 1000.0
+            )));
+        }
+        self.watchdog.arm(tick + period + margin);
+        Ok(tick)
+    }
+
+    /// A frame, the spheres in it (in the policy's field of view) and the
+    /// stages' position.
+    fn sense(&mut self) -> Result<Sensed, Ending> {
+        let frame = (self.camera.grab()).map_err(|e| Ending::Fault(format!("camera: {e}")))?;
+        let frame_in = self.camera.captured().unwrap_or_else(Instant::now);
+        let mut detections = (self.segmenter.segment(&frame))
+            .map_err(|e| Ending::Fault(format!("segmentation: {e}")))?;
+        for d in &mut detections {
+            d.centre = [0, 1].map(|a| d.centre[a] + self.frame_offset[a]);
+        }
+        let stage_mm = (self.stages.position_mm()).map_err(|e| Ending::Fault(e.to_string()))?;
+        Ok(Sensed {
+            frame_in,
+            detections,
+            position: self.stages.px(stage_mm),
+            stage_mm,
+        })
+    }
+
+    /// Fills `observation` with the free spheres the camera sees and the
+    /// overlay's, tracked from the previous step; returns which detection
+    /// is the trapped sphere, if one is.
+    fn observe(
+        &self,
+        sensed: &Sensed,
+        tracker: &mut SphereTracker,
+        observation: &mut Observation,
+    ) -> Option<usize> {
+        let [fw, fh] = self.env.fov_px.map(f64::from);
+        let centre = [fw / 2.0, fh / 2.0];
+        let trapped = trapped_sphere(&sensed.detections, centre, self.control.trap_search_px);
+        observation.centres.clear();
+        observation.centres.extend(
+            (sensed.detections.iter().enumerate())
+                .filter(|&(k, _)| Some(k) != trapped)
+                .map(|(_, d)| d.centre.map(|v| v as f32)),
+        );
+        let radius = self.env.sphere_radius_px();
+        (self.overlay).visible(sensed.position, [fw, fh], radius, &mut observation.centres);
+        tracker.track(
+            &observation.centres,
+            sensed.position,
+            &mut observation.displacements,
+        );
+        trapped
+    }
+
+    /// Scores the step by the virtual environment's rule: the episode ends
+    /// on a collision (with a free sphere or a virtual obstacle, which
+    /// needs the trapped sphere in view), success or the time limit.
+    fn score(
+        &self,
+        observation: &Observation,
+        trap_seen: bool,
+        remaining: [f64; 2],
+        steps: u32,
+    ) -> Result<(), Ending> {
+        let [fw, fh] = self.env.fov_px.map(f64::from);
+        let hit = observation
+            .centres
+            .iter()
+            .any(|c| (self.env).collides([f64::from(c[0]) - fw / 2.0, f64::from(c[1]) - fh / 2.0]));
+        let to_target = remaining[0].hypot(remaining[1]);
+        match self.env.outcome(hit && trap_seen, to_target, steps) {
+            Outcome::Collision => Err(Ending::Collision),
+            Outcome::Success => Err(Ending::Success),
+            Outcome::Timeout => Err(Ending::Timeout),
+            Outcome::Running => Ok(()),
+        }
+    }
+
+    /// Commands the stages to `velocity` px/s, unless a stop came. A stall
+    /// in this step may have tripped the watchdog, or a stop come: then the
+    /// stages stay as they were stopped. Checked again after the command:
+    /// whoever stops records the request before stopping, so a request
+    /// this second check misses is followed by its own stop, after the
+    /// command.
+    fn command(&mut self, halt: &Halt, velocity: [f64; 2]) -> Result<(), Ending> {
+        if let Some(ending) = self.interrupted(halt) {
+            return Err(ending);
+        }
+        (self.stages.set_velocity_px(velocity)).map_err(|e| Ending::Fault(e.to_string()))?;
+        match self.interrupted(halt) {
+            Some(ending) => Err(ending),
+            None => Ok(()),
+        }
+    }
+}
+
+/// What a step sensed.
+struct Sensed {
+    /// When the frame reached the PC.
+    frame_in: Instant,
+    /// The spheres in the frame, in the policy's field of view.
+    detections: Vec<Detection>,
+    /// The stages' position, px and mm.
+    position: [f64; 2],
+    stage_mm: [f64; 2],
+}
+
+/// The target vector the policy sees: `remaining` over the episode's
+/// `initial` distance, at most 1 long.
+fn goal_vector(remaining: [f64; 2], initial: f64) -> [f32; 2] {
+    let mut vector = remaining.map(|v| v / initial);
+    let magnitude = vector[0].hypot(vector[1]);
+    if magnitude > 1.0 {
+        vector = vector.map(|v| v / magnitude);
+    }
+    vector.map(|v| v as f32)
 }
 
 impl<C, P: Read + Write> Rig<C, P> {
