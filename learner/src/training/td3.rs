@@ -150,7 +150,8 @@ impl<N: Networks> Td3<N> {
     pub fn critic_step(&mut self, batch: &Minibatch<N::Input>) -> CriticStats {
         let passes = self.passes;
         passes.on_worker(|| {
-            let (y, (q1, q2)) = passes.side_by_side(self.td_target(batch), self.online_q(batch));
+            let (y, (q1, q2)) =
+                passes.side_by_side(self.td_target_pass(batch), self.online_q_pass(batch));
             let mse = MseLoss::new();
             let loss_1 = mse.forward(q1.clone(), y.clone(), Reduction::Mean);
             let loss_2 = mse.forward(q2, y, Reduction::Mean);
@@ -201,7 +202,10 @@ impl<N: Networks> Td3<N> {
     /// The TD target, as a pass to run beside others (no autodiff):
     /// y = r + γ^n (1 − terminated) min(Q1'(s', ã), Q2'(s', ã)), with the
     /// smoothed target action ã = clip(π'(s') + clip(ε, −c, c), −1, 1).
-    fn td_target(&self, batch: &Minibatch<N::Input>) -> impl FnOnce() -> Tensor<2> + Send + use<N> {
+    fn td_target_pass(
+        &self,
+        batch: &Minibatch<N::Input>,
+    ) -> impl FnOnce() -> Tensor<2> + Send + use<N> {
         let (actor, critics) = (self.actor_target.clone(), self.critics_target.clone());
         let (c, passes) = (self.config.clone(), self.passes);
         let Minibatch {
@@ -244,7 +248,7 @@ impl<N: Networks> Td3<N> {
     }
 
     /// Q1(s, a) and Q2(s, a) of the batch's actions, as a pass.
-    fn online_q(
+    fn online_q_pass(
         &self,
         batch: &Minibatch<N::Input>,
     ) -> impl FnOnce() -> (Tensor<2>, Tensor<2>) + Send + use<N> {
