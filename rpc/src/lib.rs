@@ -31,7 +31,7 @@ pub use private_file::{append_private, create_private};
 pub use prometheus::{Histogram, MetricSample, Prometheus, latency_buckets};
 pub use security::{Pem, SECURITY_ENV, Security, SecurityError, SecurityFile, TOKEN_ENV};
 pub use server::{
-    MAX_CONCURRENT_STREAMS, MAX_FRAME_BYTES, MAX_HEADER_LIST_BYTES, MAX_LOCAL_ERROR_RESETS,
-    MAX_PENDING_ACCEPT_RESETS, RECEIVE_WINDOW_BYTES, ServerSecurity,
+    GrpcService, MAX_CONCURRENT_STREAMS, MAX_FRAME_BYTES, MAX_HEADER_LIST_BYTES,
+    MAX_LOCAL_ERROR_RESETS, MAX_PENDING_ACCEPT_RESETS, RECEIVE_WINDOW_BYTES, ServerSecurity,
 };
 pub use tokens::{Role, Token, TokenEntry, TokenError, Tokens};

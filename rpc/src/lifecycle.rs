@@ -3,18 +3,13 @@
 //! launchers wait for, its metrics beside it, a stop signal or the
 //! process's own end, and a bounded grace for clients to hang up.
 
-use crate::{Prometheus, ServerSecurity};
+use crate::{GrpcService, Prometheus, ServerSecurity};
 use anyhow::Context;
-use http::Request;
-use std::convert::Infallible;
 use std::future::Future;
 use std::net::SocketAddr;
 use std::sync::Arc;
 use std::time::Duration;
 use tokio::net::TcpListener;
-use tonic::body::Body;
-use tonic::server::NamedService;
-use tower::Service;
 use tweezer_process::StopSignals;
 
 /// A service's listeners, bound before anything else starts so that an
@@ -72,14 +67,7 @@ impl Listeners {
         stopping: Stopping<'_, E, F>,
     ) -> anyhow::Result<()>
     where
-        S: Service<Request<Body>, Error = Infallible>
-            + NamedService
-            + Clone
-            + Send
-            + Sync
-            + 'static,
-        S::Response: axum::response::IntoResponse,
-        S::Future: Send + 'static,
+        S: GrpcService,
         E: Future<Output = ()> + Send,
         F: FnOnce() + Send,
     {

@@ -72,6 +72,36 @@ pub struct ServerSecurity {
     watching_sighup: Arc<AtomicBool>,
 }
 
+/// A gRPC service as tonic generates it, which [`ServerSecurity::serve`]
+/// and [`crate::Listeners::serve`] mount beside health and reflection.
+pub trait GrpcService:
+    Service<
+        Request<Body>,
+        Error = Infallible,
+        Response: axum::response::IntoResponse,
+        Future: Send + 'static,
+    > + NamedService
+    + Clone
+    + Send
+    + Sync
+    + 'static
+{
+}
+
+impl<S> GrpcService for S where
+    S: Service<
+            Request<Body>,
+            Error = Infallible,
+            Response: axum::response::IntoResponse,
+            Future: Send + 'static,
+        > + NamedService
+        + Clone
+        + Send
+        + Sync
+        + 'static
+{
+}
+
 impl ServerSecurity {
     /// The listener settings of `security`: its certificate and key (and CA,
     /// for client certificates) parsed, its tokens read, its `[listener]`
@@ -179,14 +209,7 @@ impl ServerSecurity {
         shutdown: impl Future<Output = ()> + Send,
     ) -> anyhow::Result<()>
     where
-        S: Service<Request<Body>, Error = Infallible>
-            + NamedService
-            + Clone
-            + Send
-            + Sync
-            + 'static,
-        S::Response: axum::response::IntoResponse,
-        S::Future: Send + 'static,
+        S: GrpcService,
     {
         self.reload_on_sighup();
         let (health, health_service) = tonic_health::server::health_reporter();
