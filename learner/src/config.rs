@@ -11,7 +11,7 @@ use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
 use tweezer_config::{ConfigError, read_toml};
 use tweezer_gym::EnvConfig;
-use tweezer_nets::{Architecture, Pooling, SetShape, SphereInputs};
+use tweezer_nets::{ActionJoin, Architecture, Pooling, SetShape, SphereInputs};
 
 /// The whole file.
 #[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
@@ -256,6 +256,11 @@ pub struct SetNetworkConfig {
     /// `positions`, or `motion`: each sphere's displacement since the
     /// previous step too.
     pub inputs: SphereInputs,
+    /// `pooled`, or `per_sphere`: the critic's action joins each sphere's
+    /// first layer too.
+    pub action_join: ActionJoin,
+    /// LayerNorm in the critic's layers after pooling.
+    pub critic_layer_norm: bool,
 }
 
 impl Default for SetNetworkConfig {
@@ -268,6 +273,8 @@ impl Default for SetNetworkConfig {
             pooling: shape.pooling,
             max_spheres: shape.max_spheres,
             inputs: shape.inputs,
+            action_join: shape.action_join,
+            critic_layer_norm: shape.critic_layer_norm,
         }
     }
 }
@@ -287,6 +294,8 @@ impl NetworkConfig {
                 max_spheres: s.max_spheres,
                 fov_px: env.fov_px,
                 inputs: s.inputs,
+                action_join: s.action_join,
+                critic_layer_norm: s.critic_layer_norm,
             }),
         }
     }

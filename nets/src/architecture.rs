@@ -110,6 +110,37 @@ impl SphereInputs {
     }
 }
 
+/// Where the set critic joins the action to what it sees.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum ActionJoin {
+    /// After pooling, beside the target vector: one summary of the set
+    /// judges every action.
+    #[default]
+    Pooled,
+    /// Also in each sphere's first layer, before pooling: the per-sphere
+    /// layers judge what this action does near this sphere, and the max
+    /// keeps the sphere it runs into.
+    PerSphere,
+}
+
+impl ActionJoin {
+    /// Its name in configs and checkpoint metadata.
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::Pooled => "pooled",
+            Self::PerSphere => "per_sphere",
+        }
+    }
+
+    /// The join called `name`.
+    pub fn from_name(name: &str) -> Option<Self> {
+        [Self::Pooled, Self::PerSphere]
+            .into_iter()
+            .find(|j| j.name() == name)
+    }
+}
+
 /// The set network's hyper-parameters and the field of view its inputs
 /// are scaled by.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
@@ -129,12 +160,20 @@ pub struct SetShape {
     /// What it reads of each sphere.
     #[serde(default)]
     pub inputs: SphereInputs,
+    /// Where the critic joins the action (the actor has none to join).
+    #[serde(default)]
+    pub action_join: ActionJoin,
+    /// Whether the critic's layers after pooling are normalised
+    /// (LayerNorm before each ReLU).
+    #[serde(default)]
+    pub critic_layer_norm: bool,
 }
 
 impl SetShape {
     /// The default set network (the `lean` preset's) for a `fov_px` field:
     /// 64-wide per-sphere and head layers, max and mean pooling, the 32
-    /// nearest spheres, positions only.
+    /// nearest spheres, positions only, the critic's action joined after
+    /// pooling.
     pub fn new(fov_px: [u32; 2]) -> Self {
         Self {
             sphere_hidden: 64,
@@ -143,6 +182,8 @@ impl SetShape {
             max_spheres: 32,
             fov_px,
             inputs: SphereInputs::Positions,
+            action_join: ActionJoin::Pooled,
+            critic_layer_norm: false,
         }
     }
 }
@@ -192,6 +233,8 @@ impl Architecture {
                 ("fov_width", s.fov_px[0].to_string()),
                 ("fov_height", s.fov_px[1].to_string()),
                 ("inputs", s.inputs.name().to_string()),
+                ("action_join", s.action_join.name().to_string()),
+                ("critic_layer_norm", s.critic_layer_norm.to_string()),
             ],
         }
     }
@@ -229,6 +272,16 @@ impl Architecture {
                     Some(name) => {
                         SphereInputs::from_name(name).ok_or(ArchitectureError::Field("inputs"))?
                     }
+                },
+                // Files from before these two were chosen: pooled, no LayerNorm.
+                action_join: match field("action_join") {
+                    None => ActionJoin::Pooled,
+                    Some(name) => ActionJoin::from_name(name)
+                        .ok_or(ArchitectureError::Field("action_join"))?,
+                },
+                critic_layer_norm: match field("critic_layer_norm") {
+                    None => false,
+                    Some(_) => parse(&field, "critic_layer_norm")?,
                 },
             }),
             other => return Err(ArchitectureError::Unknown(other.to_string())),

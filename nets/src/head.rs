@@ -2,7 +2,7 @@
 
 use burn::config::Config;
 use burn::module::Module;
-use burn::nn::{Linear, LinearConfig};
+use burn::nn::{LayerNorm, LayerNormConfig, Linear, LinearConfig};
 use burn::tensor::activation::relu;
 use burn::tensor::{Device, Tensor};
 
@@ -12,6 +12,8 @@ pub struct Head {
     fc1: Linear,
     fc2: Linear,
     out: Linear,
+    /// LayerNorm before each hidden ReLU, when asked for.
+    norms: Option<[LayerNorm; 2]>,
 }
 
 /// The head's shape.
@@ -24,6 +26,9 @@ pub struct HeadConfig {
     /// Width of the two hidden layers.
     #[config(default = 64)]
     pub hidden: usize,
+    /// Whether each hidden layer is normalised (LayerNorm) before its ReLU.
+    #[config(default = false)]
+    pub layer_norm: bool,
 }
 
 impl HeadConfig {
@@ -33,6 +38,9 @@ impl HeadConfig {
             fc1: LinearConfig::new(self.inputs, self.hidden).init(device),
             fc2: LinearConfig::new(self.hidden, self.hidden).init(device),
             out: LinearConfig::new(self.hidden, self.outputs).init(device),
+            norms: self
+                .layer_norm
+                .then(|| [0, 1].map(|_| LayerNormConfig::new(self.hidden).init(device))),
         }
     }
 }
@@ -42,8 +50,12 @@ impl Head {
     /// - `x`: `[batch, inputs]`
     /// - output: `[batch, outputs]`
     pub fn forward(&self, x: Tensor<2>) -> Tensor<2> {
-        let x = relu(self.fc1.forward(x)); // [batch, hidden]
-        let x = relu(self.fc2.forward(x)); // [batch, hidden]
+        let norm = |k: usize, x: Tensor<2>| match &self.norms {
+            Some(norms) => norms[k].forward(x),
+            None => x,
+        };
+        let x = relu(norm(0, self.fc1.forward(x))); // [batch, hidden]
+        let x = relu(norm(1, self.fc2.forward(x))); // [batch, hidden]
         self.out.forward(x) // [batch, outputs]
     }
 }

@@ -29,8 +29,8 @@ mod spheres;
 
 pub use actor::{Actor, ActorConfig};
 pub use architecture::{
-    Architecture, ArchitectureError, PAPER_ARCHITECTURE, Pooling, SET_ARCHITECTURE, SetShape,
-    SphereInputs,
+    ActionJoin, Architecture, ArchitectureError, PAPER_ARCHITECTURE, Pooling, SET_ARCHITECTURE,
+    SetShape, SphereInputs,
 };
 pub use critic::{Critic, CriticConfig};
 pub use encoder::{Encoder, EncoderConfig};
@@ -39,7 +39,7 @@ pub use images::render_images;
 pub use networks::{AnyNetworks, Networks, PaperNetworks, SetNetworks};
 pub use policy::{LoadError, NetworkPolicy, PolicyFileError};
 pub use set_actor::{SetActor, SetActorConfig};
-pub use set_critic::{SetCritic, SetCriticConfig};
+pub use set_critic::{SetCritic, SetCriticConfig, SetFeatures};
 pub use set_encoder::{SetEncoder, SetEncoderConfig};
 pub use snapshot::{SnapshotError, SnapshotInfo, decode, encode, file_sha256, read_info};
 pub use spheres::{MOTION_SCALE_PX, Scene, SetBatch, SphereSets};

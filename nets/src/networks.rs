@@ -9,7 +9,7 @@ use crate::critic::{Critic, CriticConfig};
 use crate::encoder::EncoderConfig;
 use crate::images::render_images;
 use crate::set_actor::{SetActor, SetActorConfig};
-use crate::set_critic::{SetCritic, SetCriticConfig};
+use crate::set_critic::{SetCritic, SetCriticConfig, SetFeatures};
 use crate::set_encoder::SetEncoderConfig;
 use crate::spheres::{Scene, SetBatch, SphereSets};
 use burn::module::{Module, ModuleDisplay};
@@ -26,6 +26,9 @@ pub trait Networks: Clone + Send + Sync + 'static {
     type Actor: Module + ModuleDisplay;
     /// The action-value network.
     type Critic: Module + ModuleDisplay;
+    /// What the critic computes of an input before it sees the vector and
+    /// the action.
+    type Features: Clone + Send + Sync;
 
     /// The architecture, as snapshots and checkpoints record it.
     fn architecture(&self) -> Architecture;
@@ -51,12 +54,15 @@ pub trait Networks: Clone + Send + Sync + 'static {
 
     /// The critic's features of `input`: what does not depend on the
     /// vector or the action.
-    fn features(critic: &Self::Critic, input: Self::Input) -> Tensor<2>;
+    fn features(critic: &Self::Critic, input: Self::Input) -> Self::Features;
+
+    /// `features` cut from the autodiff graph.
+    fn detach(features: Self::Features) -> Self::Features;
 
     /// Q, `[batch, 1]`, from the critic's features.
     fn value(
         critic: &Self::Critic,
-        features: Tensor<2>,
+        features: Self::Features,
         vector: Tensor<2>,
         action: Tensor<2>,
     ) -> Tensor<2>;
@@ -121,6 +127,7 @@ impl Networks for PaperNetworks {
     type Input = Tensor<4>;
     type Actor = Actor;
     type Critic = Critic;
+    type Features = Tensor<2>;
 
     fn architecture(&self) -> Architecture {
         Architecture::Paper {
@@ -156,6 +163,10 @@ impl Networks for PaperNetworks {
 
     fn features(critic: &Critic, input: Tensor<4>) -> Tensor<2> {
         critic.encode(input)
+    }
+
+    fn detach(features: Tensor<2>) -> Tensor<2> {
+        features.detach()
     }
 
     fn value(
@@ -203,6 +214,7 @@ impl Networks for SetNetworks {
     type Input = SetBatch;
     type Actor = SetActor;
     type Critic = SetCritic;
+    type Features = SetFeatures;
 
     fn architecture(&self) -> Architecture {
         Architecture::Set(self.shape)
@@ -217,6 +229,8 @@ impl Networks for SetNetworks {
     fn critic(&self, device: &Device) -> SetCritic {
         SetCriticConfig::new(self.encoder())
             .with_hidden(self.shape.head_hidden)
+            .with_action_join(self.shape.action_join)
+            .with_layer_norm(self.shape.critic_layer_norm)
             .init(device)
     }
 
@@ -236,13 +250,17 @@ impl Networks for SetNetworks {
         actor.forward(input, vector)
     }
 
-    fn features(critic: &SetCritic, input: SetBatch) -> Tensor<2> {
+    fn features(critic: &SetCritic, input: SetBatch) -> SetFeatures {
         critic.encode(input)
+    }
+
+    fn detach(features: SetFeatures) -> SetFeatures {
+        features.detach()
     }
 
     fn value(
         critic: &SetCritic,
-        features: Tensor<2>,
+        features: SetFeatures,
         vector: Tensor<2>,
         action: Tensor<2>,
     ) -> Tensor<2> {

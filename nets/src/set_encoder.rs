@@ -59,18 +59,32 @@ impl SetEncoder {
     /// - output: `[batch, hidden]`, or `[batch, 2 * hidden]` for max and
     ///   mean (max first)
     pub fn forward(&self, set: SetBatch) -> Tensor<2> {
-        let (batch, width) = (set.len(), set.width);
+        let first = self.first_layer(set.spheres.clone());
+        self.from_first_layer(set.with_spheres(first))
+    }
+
+    /// The first layer's affine map of each sphere (`[spheres, hidden]`),
+    /// before its ReLU: where a per-set term can join each sphere.
+    pub fn first_layer(&self, spheres: Tensor<2>) -> Tensor<2> {
+        self.fc1.forward(spheres)
+    }
+
+    /// The rest of [`Self::forward`] from `first`, whose rows are
+    /// [`Self::first_layer`]'s (plus anything joined): ReLU, the second
+    /// layer, pooling.
+    pub fn from_first_layer(&self, first: SetBatch) -> Tensor<2> {
+        let (batch, width) = (first.len(), first.width);
         // The MLP on real spheres only, one matrix product per layer.
-        let x = relu(self.fc1.forward(set.spheres)); // [spheres, hidden]
+        let x = relu(first.spheres); // [spheres, hidden]
         let x = relu(self.fc2.forward(x)); // [spheres, hidden]
         let [_, hidden] = x.dims();
         // Padding reads an appended zero row: never above a ReLU output,
         // nothing added to a sum.
         let zero = Tensor::<2>::zeros([1, hidden], &x.device());
         let x = Tensor::cat(vec![x, zero], 0) // [spheres + 1, hidden]
-            .select(0, set.slots) // [batch width, hidden]
+            .select(0, first.slots) // [batch width, hidden]
             .reshape([batch, width, hidden]); // [batch, width, hidden]
-        let mean = || x.clone().sum_dim(1).reshape([batch, hidden]) / set.counts.clone(); // [batch, hidden]
+        let mean = || x.clone().sum_dim(1).reshape([batch, hidden]) / first.counts.clone(); // [batch, hidden]
         let max = || x.clone().max_dim(1).reshape([batch, hidden]); // [batch, hidden]
         match self.pooling {
             Pooling::MaxMean => Tensor::cat(vec![max(), mean()], 1), // [batch, 2 hidden]

@@ -96,6 +96,11 @@ pub struct SetBatch {
     /// `[batch width]` (Int): for each padded slot, its row in `spheres`,
     /// or `spheres`' row count for padding (a zero row pooling appends).
     pub slots: Tensor<1, Int>,
+    /// `[spheres]` (Int): the set each row of `spheres` belongs to, so that
+    /// a per-set value (a critic's action) can join each of its spheres;
+    /// the batch's size for the zero row of a batch without spheres (a
+    /// row appended to the per-set values).
+    pub owners: Tensor<1, Int>,
     /// `[batch, 1]`: spheres per set, at least 1 (an empty set's sum is
     /// zero whatever it is divided by).
     pub counts: Tensor<2>,
@@ -111,6 +116,11 @@ impl SetBatch {
             counts: self.counts.valid(),
             ..self
         }
+    }
+
+    /// The same layout with other per-sphere rows (`[spheres, any]`).
+    pub fn with_spheres(self, spheres: Tensor<2>) -> Self {
+        Self { spheres, ..self }
     }
 
     /// Sets in the batch.
@@ -207,19 +217,23 @@ impl SphereSets {
         let packed = sets.iter().map(Vec::len).sum::<usize>().max(1);
         let mut features = Vec::with_capacity(packed * per_sphere);
         let mut slots = vec![packed as i64; sets.len() * width];
+        let mut owners = Vec::with_capacity(packed);
         let mut counts = Vec::with_capacity(sets.len());
         for (b, set) in sets.iter().enumerate() {
             for (k, f) in set.iter().enumerate() {
                 slots[b * width + k] = (features.len() / per_sphere) as i64;
                 features.extend_from_slice(f);
+                owners.push(b as i64);
             }
             counts.push(set.len().max(1) as f32);
         }
         features.resize(packed * per_sphere, 0.0);
         let n = sets.len();
+        owners.resize(packed, n as i64);
         SetBatch {
             spheres: Tensor::from_data(TensorData::new(features, [packed, per_sphere]), device),
             slots: Tensor::from_data(TensorData::new(slots, [n * width]), device),
+            owners: Tensor::from_data(TensorData::new(owners, [packed]), device),
             counts: Tensor::from_data(TensorData::new(counts, [n, 1]), device),
             width,
         }

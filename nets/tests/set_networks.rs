@@ -4,8 +4,8 @@
 use burn::tensor::{Device, Tensor, TensorData};
 use tweezer_gym::SplitMix64;
 use tweezer_nets::{
-    MOTION_SCALE_PX, Pooling, Scene, SetActor, SetActorConfig, SetCritic, SetCriticConfig,
-    SetEncoderConfig, SetShape, SphereInputs, SphereSets,
+    ActionJoin, MOTION_SCALE_PX, Pooling, Scene, SetActor, SetActorConfig, SetCritic,
+    SetCriticConfig, SetEncoderConfig, SetShape, SphereInputs, SphereSets,
 };
 
 const FOV: [u32; 2] = [320, 256];
@@ -19,19 +19,23 @@ fn sets(max_spheres: usize, fov_px: [u32; 2]) -> SphereSets {
     SphereSets::new(&shape, fov_px)
 }
 
-fn nets(device: &Device) -> (SetActor, SetCritic) {
-    nets_pooled(Pooling::MaxMean, device)
+fn nets(join: ActionJoin, device: &Device) -> (SetActor, SetCritic) {
+    nets_pooled(Pooling::MaxMean, join, device)
 }
 
-fn nets_pooled(pooling: Pooling, device: &Device) -> (SetActor, SetCritic) {
+fn nets_pooled(pooling: Pooling, join: ActionJoin, device: &Device) -> (SetActor, SetCritic) {
     let encoder = SetEncoderConfig::new()
         .with_hidden(32)
         .with_pooling(pooling);
     (
         SetActorConfig::new(encoder.clone()).init(device),
-        SetCriticConfig::new(encoder).init(device),
+        SetCriticConfig::new(encoder)
+            .with_action_join(join)
+            .init(device),
     )
 }
+
+const JOINS: [ActionJoin; 2] = [ActionJoin::Pooled, ActionJoin::PerSphere];
 
 fn scene(rng: &mut SplitMix64, spheres: usize) -> Vec<[f32; 2]> {
     (0..spheres)
@@ -90,26 +94,73 @@ fn shuffled_centres_give_the_same_action_and_value() {
         })
         .collect();
     for pooling in [Pooling::MaxMean, Pooling::Max, Pooling::Mean] {
-        let nets = nets_pooled(pooling, &device);
-        let (a, q) = outputs(&nets, &scenes, 1, &device);
-        let (b, r) = outputs(&nets, &shuffled, 1, &device);
-        assert_close(&a, &b, "actions");
-        assert_close(&q, &r, "values");
+        for join in JOINS {
+            let nets = nets_pooled(pooling, join, &device);
+            let (a, q) = outputs(&nets, &scenes, 1, &device);
+            let (b, r) = outputs(&nets, &shuffled, 1, &device);
+            assert_close(&a, &b, "actions");
+            assert_close(&q, &r, "values");
+        }
     }
 }
 
 #[test]
 fn padding_changes_nothing_and_an_empty_field_of_view_is_a_valid_input() {
     let device = Device::flex();
-    let nets = nets(&device);
     let mut rng = SplitMix64::new(11);
     let scenes = vec![scene(&mut rng, 9), Vec::new(), scene(&mut rng, 1)];
-    let (a, q) = outputs(&nets, &scenes, 1, &device);
-    let (b, r) = outputs(&nets, &scenes, 64, &device);
-    assert_close(&a, &b, "actions");
-    assert_close(&q, &r, "values");
-    assert!(a.iter().all(|x| x.is_finite() && x.abs() <= 1.0), "{a:?}");
+    for join in JOINS {
+        let nets = nets(join, &device);
+        let (a, q) = outputs(&nets, &scenes, 1, &device);
+        let (b, r) = outputs(&nets, &scenes, 64, &device);
+        assert_close(&a, &b, "actions");
+        assert_close(&q, &r, "values");
+        assert!(a.iter().all(|x| x.is_finite() && x.abs() <= 1.0), "{a:?}");
+        assert!(q.iter().all(|x| x.is_finite()), "{q:?}");
+    }
+    // Nothing in view at all: the batch's one filler row joins no set.
+    let empty = vec![Vec::new(), Vec::new()];
+    let (_, q) = outputs(&nets(ActionJoin::PerSphere, &device), &empty, 1, &device);
     assert!(q.iter().all(|x| x.is_finite()), "{q:?}");
+}
+
+/// Each set of a batch is judged with its own action: an action joined to
+/// the spheres of another set would make a set's value depend on its
+/// neighbours in the batch.
+#[test]
+fn a_per_sphere_critic_joins_each_action_to_its_own_spheres() {
+    let device = Device::flex();
+    let (_, critic) = nets(ActionJoin::PerSphere, &device);
+    let mut rng = SplitMix64::new(5);
+    let scenes = [scene(&mut rng, 7), Vec::new(), scene(&mut rng, 12)];
+    let sets = sets(64, FOV);
+    let q = |scenes: &[Vec<[f32; 2]>], actions: &[[f32; 2]]| -> Vec<f32> {
+        let n = scenes.len();
+        let tensor = |v: Vec<f32>| Tensor::<2>::from_data(TensorData::new(v, [n, 2]), &device);
+        let batch = sets.batch(scenes.iter().map(|c| Scene::without_motion(c)), &device);
+        let vector = tensor([0.5, 0.1].repeat(n));
+        let action = tensor(actions.concat());
+        let q = critic.forward(batch, vector, action);
+        q.into_data().try_to_vec::<f32>().unwrap()
+    };
+    let actions = [[0.9, -0.2], [-0.4, 0.3], [0.1, 0.8]];
+    let together = q(&scenes, &actions);
+    for k in 0..3 {
+        let alone = q(&scenes[k..=k], &actions[k..=k]);
+        assert!(
+            (together[k] - alone[0]).abs() <= 1e-5,
+            "set {k}: {} in the batch, {} alone",
+            together[k],
+            alone[0]
+        );
+    }
+    // Another action for the last set moves its value, and only its.
+    let other = q(&scenes, &[actions[0], actions[1], [-0.9, -0.7]]);
+    assert_close(&together[..2], &other[..2], "the other sets' values");
+    assert!(
+        (together[2] - other[2]).abs() > 1e-6,
+        "{together:?} vs {other:?}"
+    );
 }
 
 #[test]

@@ -5,8 +5,8 @@ use burn::tensor::{Device, Distribution, Tensor};
 use std::collections::HashMap;
 use tweezer_gym::{EnvConfig, ImageConfig, Observation, Policy, Renderer};
 use tweezer_nets::{
-    Architecture, NetworkPolicy, Networks, PaperNetworks, Pooling, SetNetworks, SetShape,
-    SnapshotError, SnapshotInfo, SphereInputs, decode, encode, file_sha256, read_info,
+    ActionJoin, Architecture, NetworkPolicy, Networks, PaperNetworks, Pooling, SetNetworks,
+    SetShape, SnapshotError, SnapshotInfo, SphereInputs, decode, encode, file_sha256, read_info,
 };
 
 fn env(width: u32, height: u32) -> EnvConfig {
@@ -103,6 +103,8 @@ fn a_set_snapshot_round_trips_with_its_hyper_parameters() {
         max_spheres: 9,
         fov_px: [1280, 1024],
         inputs: SphereInputs::Motion,
+        action_join: ActionJoin::PerSphere,
+        critic_layer_norm: true,
     };
     let networks = set(shape);
     let (actor, bytes) = snapshot(&networks, &device);

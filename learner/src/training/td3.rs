@@ -286,7 +286,7 @@ impl<N: Networks> Td3<N> {
                 let (input, vector) = (input.clone(), vector.clone());
                 move || N::act(&actor, input, vector)
             },
-            move || N::features(&q1, input).detach(),
+            move || N::detach(N::features(&q1, input)),
         );
         let penalty = pi.clone().powi_scalar(2).mean() * c.action_l2;
         let q = N::value(&self.critics.q1, features, vector, pi.clone());
