@@ -45,6 +45,12 @@ enum Command {
         /// Actor processes instead of `train.actors`.
         #[arg(long)]
         actors: Option<usize>,
+        /// Stop once the learner has made this many updates (its
+        /// `learner.max_updates`), or when the minutes run out, whichever
+        /// comes first: a policy judged at a number of updates, whatever
+        /// the machine's speed.
+        #[arg(long, conflicts_with = "resume")]
+        updates: Option<u64>,
         /// The run directory (default: the first free `runs/<preset>-<n>`).
         #[arg(long, value_name = "DIR")]
         out: Option<PathBuf>,
@@ -111,6 +117,7 @@ fn run() -> anyhow::Result<()> {
             preset,
             minutes,
             actors,
+            updates,
             out,
             resume,
             learner_bin,
@@ -130,6 +137,9 @@ fn run() -> anyhow::Result<()> {
             }
             if let Some(minutes) = minutes {
                 file.train.minutes = minutes;
+            }
+            if let Some(updates) = updates {
+                file.learner.max_updates = updates;
             }
             file.validate().map_err(|e| match e {
                 // A value given on the command line is blamed on its flag.

@@ -255,6 +255,8 @@ fn prepare(mut file: TrainFile, out: &Path) -> anyhow::Result<TrainFile> {
 /// Why training stopped.
 enum Ending {
     TimeUp,
+    /// The learner made its `max_updates`.
+    UpdatesMade,
     Signal(&'static str),
 }
 
@@ -318,7 +320,8 @@ async fn supervise(
         progress,
         last: first.clone(),
     };
-    let ending = running.watch(limit.map(|l| started + l), signals).await?;
+    let deadline = limit.map(|l| started + l);
+    let ending = (running.watch(deadline, file.learner.max_updates, signals)).await?;
     let seconds = started.elapsed().as_secs_f64();
     let interrupted = running.stop(ending).await?;
     let last = running.last;
@@ -355,12 +358,14 @@ struct Running {
 
 impl Running {
     /// Watches the learner and its actors every [`POLL`] until `deadline`
-    /// passes or a signal comes, restarting actors that exit and showing
-    /// the learner's status. When the learner exits, or an actor fails too
-    /// often, the rest are stopped and the error says why.
+    /// passes, the learner has made `max_updates` (when not 0) or a signal
+    /// comes, restarting actors that exit and showing the learner's
+    /// status. When the learner exits, or an actor fails too often, the
+    /// rest are stopped and the error says why.
     async fn watch(
         &mut self,
         deadline: Option<Instant>,
+        max_updates: u64,
         signals: &mut StopSignals,
     ) -> anyhow::Result<Ending> {
         let mut ticker = tokio::time::interval(POLL);
@@ -388,7 +393,11 @@ impl Running {
             match status(&mut self.client).await {
                 Ok(s) => {
                     self.progress.update(&s);
+                    let made = max_updates > 0 && s.updates >= max_updates;
                     self.last = s;
+                    if made {
+                        return Ok(Ending::UpdatesMade);
+                    }
                 }
                 Err(e) => (self.progress).say(&format!("no status from the learner: {e:#}")),
             }
@@ -402,6 +411,7 @@ impl Running {
         self.progress.finish();
         let (interrupted, why) = match ending {
             Ending::TimeUp => (false, "time is up"),
+            Ending::UpdatesMade => (false, "the learner made its max_updates"),
             Ending::Signal(signal) => (true, signal),
         };
         eprintln!("{why}: stopping the actors, then the learner (final checkpoint)");

@@ -89,6 +89,10 @@ pub struct LearnerConfig {
     /// Transitions taken with uniformly random actions before the actors
     /// switch to the policy (`docs/spec.md` §4: 10,000).
     pub uniform_steps: u64,
+    /// Updates after which the learner makes no more (0: no limit): the
+    /// policy at a fixed number of updates, whatever the machine's speed.
+    /// It goes on serving, and publishes a snapshot at exactly this many.
+    pub max_updates: u64,
     /// The replay table.
     pub replay: ReplayConfig,
     /// TD3.
@@ -125,6 +129,7 @@ impl Default for LearnerConfig {
             seed: 0,
             batch_size: 32,
             uniform_steps: 10_000,
+            max_updates: 0,
             replay: ReplayConfig::default(),
             td3: Td3Config::default(),
             limiter: LimiterConfig::default(),

@@ -396,6 +396,38 @@ fn checkpoints(run: &Path) -> Vec<PathBuf> {
     files
 }
 
+/// `max_updates` stops the updates at exactly that many, with a snapshot
+/// there, while the learner keeps taking steps: what `experiment train
+/// --updates` judges a policy by.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn max_updates_stops_learning_at_that_many_with_a_snapshot_there() {
+    let (dir, run, config) = run_dir();
+    // Slack enough that the limiter never holds a batch back.
+    let limited = TINY
+        .replace(
+            "uniform_steps = 2000",
+            "uniform_steps = 2000\nmax_updates = 300",
+        )
+        .replace("min_size = 500", "min_size = 500\nslack = 1000000");
+    std::fs::write(&config, limited).unwrap();
+    let learner = Learner::fresh(dir.path(), &config, &run);
+    let reached = feed(&learner, "actor-0", 300).await;
+    assert_eq!(reached.updates, 300, "{reached:?}");
+    // A thousand more steps owe a thousand more updates; none is made.
+    let more = reached.steps_inserted + 1000;
+    let held = feed_until(&learner, "actor-1", |s| s.steps_inserted >= more).await;
+    assert_eq!(held.updates, 300, "{held:?}");
+    // v1 is the untrained policy; the next (every 500) would be at 500.
+    assert_eq!(held.latest_snapshot, 2, "{held:?}");
+    let mut client = learner.client().await;
+    let (info, _) = download_snapshot(&mut client, Selector::Version(2))
+        .await
+        .unwrap();
+    assert_eq!(info.training_step, 300);
+    let (exit, log) = learner.stop();
+    assert!(exit.success(), "{log}");
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn learns_to_point_at_the_target_over_grpc() {
     let (dir, run, config) = run_dir();

@@ -311,3 +311,41 @@ fn a_sweep_trains_each_run_in_turn_and_reports_them_together() {
     let fig4 = std::fs::read_to_string(out.join("report/fig4-reward.svg")).unwrap();
     assert!(fig4.contains("gamma 0.8 (2 runs)"), "the runs are averaged");
 }
+
+/// `--updates` ends a run once its learner has made exactly that many,
+/// long before its minutes, with a snapshot at that many to report.
+#[test]
+fn updates_end_a_run_at_exactly_that_many() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("run");
+    let train = write(
+        &dir.path().join("train.toml"),
+        &tiny_train_file("[train]\nminutes = 30\neval_seeds = \"0..4\"\npicture_seeds = \"0\"\n"),
+    );
+    let output = output_of(experiment_train(&train, &out).args(["--updates", "120"]));
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert!(output.status.success(), "{stderr}");
+    assert!(
+        stderr.contains("the learner made its max_updates"),
+        "{stderr}"
+    );
+    let outcome = report(&String::from_utf8(output.stdout).unwrap());
+    let run = &outcome["runs"][0];
+    assert_eq!(run["updates"], 120, "{outcome}");
+    assert_eq!(run["interrupted"], false, "{outcome}");
+    let file = std::fs::read_to_string(out.join("config.toml")).unwrap();
+    assert!(file.contains("max_updates = 120"), "{file}");
+    // Snapshots every 50 updates, and one at exactly 120.
+    let versions: Vec<String> = std::fs::read_dir(out.join("snapshots"))
+        .unwrap()
+        .map(|e| e.unwrap().file_name().into_string().unwrap())
+        .collect();
+    assert!(
+        versions.iter().any(|v| v == "v000004.safetensors"),
+        "{versions:?}"
+    );
+    assert!(
+        !versions.iter().any(|v| v == "v000005.safetensors"),
+        "{versions:?}"
+    );
+}

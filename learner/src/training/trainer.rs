@@ -187,7 +187,8 @@ impl<N: Networks> Trainer<N> {
             if self.shared.take_checkpoint_request() {
                 self.checkpoint_or_retry();
             }
-            if self.shared.paused() {
+            let limit = config.max_updates;
+            if self.shared.paused() || (limit > 0 && self.td3.updates() >= limit) {
                 std::thread::sleep(Duration::from_millis(20));
                 continue;
             }
@@ -200,7 +201,9 @@ impl<N: Networks> Trainer<N> {
                 if updates.is_multiple_of(config.metrics_every_updates) {
                     self.report();
                 }
-                if updates.is_multiple_of(config.snapshots.every_updates) {
+                if updates.is_multiple_of(config.snapshots.every_updates)
+                    || updates == config.max_updates
+                {
                     self.publish_or_report();
                 }
             } else if self.mark.at.elapsed() >= Duration::from_secs(2) {
