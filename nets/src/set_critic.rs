@@ -3,7 +3,7 @@
 use crate::architecture::ActionJoin;
 use crate::head::{Head, HeadConfig};
 use crate::set_encoder::{SetEncoder, SetEncoderConfig};
-use crate::spheres::SetBatch;
+use crate::spheres::{SetBatch, rows_or_zero};
 use burn::config::Config;
 use burn::module::Module;
 use burn::nn::{Linear, LinearConfig};
@@ -73,10 +73,7 @@ impl SetFeatures {
     pub fn detach(self) -> Self {
         match self {
             Self::Pooled(x) => Self::Pooled(x.detach()),
-            Self::PerSphere(set) => {
-                let spheres = set.spheres.clone().detach();
-                Self::PerSphere(set.with_spheres(spheres))
-            }
+            Self::PerSphere(set) => Self::PerSphere(set.map_spheres(Tensor::detach)),
         }
     }
 }
@@ -99,8 +96,7 @@ impl SetCritic {
         match self.per_sphere {
             None => SetFeatures::Pooled(self.encoder.forward(set)),
             Some(_) => {
-                let first = self.encoder.first_layer(set.spheres.clone());
-                SetFeatures::PerSphere(set.with_spheres(first))
+                SetFeatures::PerSphere(set.map_spheres(|spheres| self.encoder.first_layer(spheres)))
             }
         }
     }
@@ -115,14 +111,11 @@ impl SetCritic {
         let pooled = match (features, &self.per_sphere) {
             (SetFeatures::Pooled(pooled), None) => pooled,
             (SetFeatures::PerSphere(first), Some(join)) => {
-                // The action's term, one row per set, and a zero row for
-                // the filler of a batch without spheres.
-                let term = join.forward(action.clone()); // [batch, hidden]
-                let [_, hidden] = term.dims();
-                let zero = Tensor::<2>::zeros([1, hidden], &term.device());
-                let term = Tensor::cat(vec![term, zero], 0).select(0, first.owners.clone()); // [spheres, hidden]
-                let joined = first.spheres.clone() + term;
-                self.encoder.from_first_layer(first.with_spheres(joined)) // [batch, features]
+                // The action's term, one row per set, gathered to its
+                // spheres (zeros for the filler of a batch without any).
+                let term = rows_or_zero(join.forward(action.clone()), first.owners.clone()); // [spheres, hidden]
+                self.encoder
+                    .from_first_layer(first.map_spheres(|spheres| spheres + term)) // [batch, features]
             }
             _ => unreachable!("a critic's features are of its own kind"),
         };

@@ -6,7 +6,7 @@
 //! zeros.
 
 use crate::architecture::{Pooling, SphereInputs};
-use crate::spheres::SetBatch;
+use crate::spheres::{SetBatch, rows_or_zero};
 use burn::config::Config;
 use burn::module::Module;
 use burn::nn::{Linear, LinearConfig};
@@ -59,8 +59,7 @@ impl SetEncoder {
     /// - output: `[batch, hidden]`, or `[batch, 2 * hidden]` for max and
     ///   mean (max first)
     pub fn forward(&self, set: SetBatch) -> Tensor<2> {
-        let first = self.first_layer(set.spheres.clone());
-        self.from_first_layer(set.with_spheres(first))
+        self.from_first_layer(set.map_spheres(|spheres| self.first_layer(spheres)))
     }
 
     /// The first layer's affine map of each sphere (`[spheres, hidden]`),
@@ -78,11 +77,9 @@ impl SetEncoder {
         let x = relu(first.spheres); // [spheres, hidden]
         let x = relu(self.fc2.forward(x)); // [spheres, hidden]
         let [_, hidden] = x.dims();
-        // Padding reads an appended zero row: never above a ReLU output,
-        // nothing added to a sum.
-        let zero = Tensor::<2>::zeros([1, hidden], &x.device());
-        let x = Tensor::cat(vec![x, zero], 0) // [spheres + 1, hidden]
-            .select(0, first.slots) // [batch width, hidden]
+        // Padding reads a zero row: never above a ReLU output, nothing
+        // added to a sum.
+        let x = rows_or_zero(x, first.slots) // [batch width, hidden]
             .reshape([batch, width, hidden]); // [batch, width, hidden]
         let mean = || x.clone().sum_dim(1).reshape([batch, hidden]) / first.counts.clone(); // [batch, hidden]
         let max = || x.clone().max_dim(1).reshape([batch, hidden]); // [batch, hidden]

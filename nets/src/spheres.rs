@@ -118,9 +118,13 @@ impl SetBatch {
         }
     }
 
-    /// The same layout with other per-sphere rows (`[spheres, any]`).
-    pub fn with_spheres(self, spheres: Tensor<2>) -> Self {
-        Self { spheres, ..self }
+    /// The same layout with each per-sphere row mapped by `f` (to
+    /// `[spheres, any]`).
+    pub fn map_spheres(self, f: impl FnOnce(Tensor<2>) -> Tensor<2>) -> Self {
+        Self {
+            spheres: f(self.spheres),
+            ..self
+        }
     }
 
     /// Sets in the batch.
@@ -132,6 +136,15 @@ impl SetBatch {
     pub fn is_empty(&self) -> bool {
         self.len() == 0
     }
+}
+
+/// The rows of `x` at `index`, where index `x`'s row count reads a row of
+/// zeros: how `SetBatch::slots` (padding) and `SetBatch::owners` (a batch
+/// without spheres) point past the real rows.
+pub(crate) fn rows_or_zero(x: Tensor<2>, index: Tensor<1, Int>) -> Tensor<2> {
+    let [_, width] = x.dims();
+    let zero = Tensor::<2>::zeros([1, width], &x.device());
+    Tensor::cat(vec![x, zero], 0).select(0, index)
 }
 
 impl SphereSets {
