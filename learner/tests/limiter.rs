@@ -22,12 +22,12 @@ fn learning_waits_for_the_minimum_then_follows_the_ratio() {
     for len in 0..100 {
         assert!(l.can_insert(1, len));
         assert!(!l.can_update(len));
-        assert_eq!(l.state(len), LimiterState::WarmingUp);
+        assert_eq!(l.state(len, 0), LimiterState::WarmingUp);
         l.inserted(1);
     }
     // At the minimum nothing is owed yet.
     assert!(!l.can_update(100));
-    assert_eq!(l.state(100), LimiterState::WaitingForData);
+    assert_eq!(l.state(100, 0), LimiterState::WaitingForData);
     l.inserted(3);
     for _ in 0..3 {
         assert!(l.can_update(103));
@@ -37,9 +37,12 @@ fn learning_waits_for_the_minimum_then_follows_the_ratio() {
     // Inserts run ahead by at most the slack.
     l.inserted(10);
     assert!(!l.can_insert(1, 113));
-    assert_eq!(l.state(113), LimiterState::BlockingInserts);
+    assert_eq!(l.state(113, 0), LimiterState::BlockingInserts);
     l.updated();
     assert!(l.can_insert(1, 113));
+    assert_eq!(l.state(113, 0), LimiterState::Flowing);
+    // One step would fit, but the batch that waits does not.
+    assert_eq!(l.state(113, 5), LimiterState::BlockingInserts);
 }
 
 #[test]
@@ -161,6 +164,40 @@ fn one_producer_and_the_learner_keep_the_ratio_within_the_slack() {
 #[test]
 fn eight_producers_and_the_learner_keep_the_ratio_within_the_slack() {
     run_with_producers(8);
+}
+
+/// While a batch waits for the limiter, status says inserts are blocked,
+/// even when a single step would still fit within the slack.
+#[test]
+fn a_waiting_batch_shows_as_blocking_inserts() {
+    let replay = Replay::new(ReplayConfig::default());
+    let table = Arc::new(Table::new(replay, Some(Limiter::new(config(1.0, 1, 4.0)))));
+    let insert = |table: &Table, steps: std::ops::Range<u64>| {
+        let n = steps.end - steps.start;
+        let deadline = Instant::now() + Duration::from_secs(60);
+        let stuck = || (Instant::now() >= deadline).then_some("producer stuck");
+        table.insert(n, Duration::from_millis(10), stuck, |replay| {
+            for t in steps {
+                replay.insert(0, &step(t)).unwrap();
+            }
+            Ok(Some(()))
+        })
+    };
+    assert_eq!(insert(&table, 0..2), Ok(Some(())));
+    assert_eq!(table.limiter().unwrap().1, LimiterState::Flowing);
+    let waiting = {
+        let table = table.clone();
+        std::thread::spawn(move || insert(&table, 2..6))
+    };
+    let deadline = Instant::now() + Duration::from_secs(60);
+    while table.limiter().unwrap().1 != LimiterState::BlockingInserts {
+        assert!(Instant::now() < deadline, "the waiting batch never showed");
+        std::thread::sleep(Duration::from_millis(5));
+    }
+    assert!(!waiting.is_finished());
+    assert!(table.wait_to_update(Duration::from_secs(60)));
+    table.updated();
+    assert_eq!(waiting.join().unwrap(), Ok(Some(())));
 }
 
 /// A batch that two streams of one session deliver at once (a resend after

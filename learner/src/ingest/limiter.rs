@@ -164,11 +164,13 @@ impl Limiter {
         };
     }
 
-    /// What the limiter is doing.
-    pub fn state(&self, replay_len: usize) -> LimiterState {
+    /// What the limiter is doing, `largest_waiting` being the largest
+    /// batch now waiting to be inserted (0: none). Inserts are blocked when
+    /// that batch cannot go in, even if a single step could.
+    pub fn state(&self, replay_len: usize, largest_waiting: u64) -> LimiterState {
         if replay_len < self.config.min_size {
             LimiterState::WarmingUp
-        } else if !self.can_insert(1, replay_len) {
+        } else if !self.can_insert(largest_waiting.max(1), replay_len) {
             LimiterState::BlockingInserts
         } else if !self.can_update(replay_len) {
             LimiterState::WaitingForData

@@ -24,6 +24,8 @@ struct Inner {
     /// None: ingest alone (benchmarks, tests): inserts never wait, and no
     /// update is ever allowed.
     limiter: Option<Limiter>,
+    /// The sizes of the batches waiting for the limiter, for its state.
+    waiting: Vec<u64>,
 }
 
 /// The replay, read while the table is held: nothing is inserted or
@@ -47,7 +49,11 @@ impl Table {
             limiter
         });
         Self {
-            inner: Mutex::new(Inner { replay, limiter }),
+            inner: Mutex::new(Inner {
+                replay,
+                limiter,
+                waiting: Vec::new(),
+            }),
             changed: Condvar::new(),
         }
     }
@@ -69,17 +75,22 @@ impl Table {
         store: impl FnOnce(&mut Replay) -> Result<Option<T>, E>,
     ) -> Result<Option<T>, E> {
         let mut inner = self.lock();
-        while !inner.admits(n) {
-            inner = self
-                .changed
-                .wait_timeout_while(inner, round, |inner| !inner.admits(n))
-                .unwrap_or_else(|p| p.into_inner())
-                .0;
-            if !inner.admits(n)
-                && let Some(e) = give_up()
-            {
-                return Err(e);
+        if !inner.admits(n) {
+            inner.waiting.push(n);
+            while !inner.admits(n) {
+                inner = self
+                    .changed
+                    .wait_timeout_while(inner, round, |inner| !inner.admits(n))
+                    .unwrap_or_else(|p| p.into_inner())
+                    .0;
+                if !inner.admits(n)
+                    && let Some(e) = give_up()
+                {
+                    inner.stop_waiting(n);
+                    return Err(e);
+                }
             }
+            inner.stop_waiting(n);
         }
         let stored = store(&mut inner.replay)?;
         if stored.is_some() {
@@ -124,11 +135,22 @@ impl Table {
     pub fn limiter(&self) -> Option<(LimiterCounts, LimiterState)> {
         let inner = self.lock();
         let len = inner.replay.len();
-        inner.limiter.as_ref().map(|l| (l.counts(), l.state(len)))
+        let largest_waiting = inner.waiting.iter().copied().max().unwrap_or(0);
+        inner
+            .limiter
+            .as_ref()
+            .map(|l| (l.counts(), l.state(len, largest_waiting)))
     }
 }
 
 impl Inner {
+    /// A batch of `n` no longer waits.
+    fn stop_waiting(&mut self, n: u64) {
+        if let Some(i) = self.waiting.iter().position(|&w| w == n) {
+            self.waiting.swap_remove(i);
+        }
+    }
+
     fn admits(&self, n: u64) -> bool {
         self.limiter
             .as_ref()
