@@ -260,8 +260,8 @@ pub fn write(runs: &[PathBuf], out: &Path, options: &ReportOptions) -> anyhow::R
 }
 
 /// Draws Fig. 4 into `out` (listed in `files`): one curve per label over
-/// its runs, with each label's ideal return dashed (once when all are
-/// equal); returns the ideal return of each label.
+/// its runs, with each label's ideal return dashed in its colour (once,
+/// in black, when all are equal); returns the ideal return of each label.
 fn draw_rewards(
     runs: &[Run],
     out: &Path,

@@ -25,7 +25,9 @@ pub struct RewardFigure {
     pub title: String,
     /// Episodes in the rolling mean.
     pub window: usize,
-    /// Theoretical maxima, each drawn dashed with its label.
+    /// Theoretical maxima, each drawn dashed with its label: one per
+    /// curve, in the curves' order, is drawn in that curve's colour; any
+    /// other number in black.
     pub ideal: Vec<(String, f64)>,
 }
 
@@ -110,8 +112,9 @@ pub fn reward_figure(
             .x_desc("episode")
             .y_desc(format!("reward ({}-episode rolling mean)", figure.window))
             .draw()?;
+        let color_of = |k: usize| Palette99::pick(k).to_rgba();
         for (k, (curve, band)) in curves.iter().zip(&bands).enumerate() {
-            let color = Palette99::pick(k).to_rgba();
+            let color = color_of(k);
             let upper = band
                 .iter()
                 .enumerate()
@@ -138,16 +141,22 @@ pub fn reward_figure(
                     PathElement::new([(x, y), (x + 20, y)], color.stroke_width(2))
                 });
         }
-        for &(ref label, ideal) in &figure.ideal {
+        let per_curve = figure.ideal.len() == curves.len() && curves.len() > 1;
+        for (k, &(ref label, ideal)) in figure.ideal.iter().enumerate() {
+            let color = if per_curve {
+                color_of(k)
+            } else {
+                BLACK.to_rgba()
+            };
             chart
                 .draw_series(DashedLineSeries::new(
                     [(0.0, ideal), (episodes as f64, ideal)],
                     8,
                     6,
-                    BLACK.stroke_width(1),
+                    color.stroke_width(1),
                 ))?
                 .label(format!("theoretical maximum{label}"))
-                .legend(|(x, y)| PathElement::new([(x, y), (x + 20, y)], BLACK));
+                .legend(move |(x, y)| PathElement::new([(x, y), (x + 20, y)], color));
         }
         chart
             .configure_series_labels()
@@ -203,5 +212,32 @@ mod tests {
         assert!(svg.contains("theoretical maximum"));
         let empty = reward_figure(&[], &figure, &path).unwrap_err();
         assert!(matches!(empty, FigureError::Empty));
+    }
+
+    /// With one maximum per curve (a reward ablation), each dashed line
+    /// takes its curve's colour, so the legend tells them apart.
+    #[test]
+    fn one_maximum_per_curve_is_drawn_in_its_colour() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("fig4c.svg");
+        let curves = ["all rewards", "no carry"].map(|label| Curve {
+            label: label.into(),
+            runs: vec![vec![100.0; 150]],
+        });
+        let figure = RewardFigure {
+            title: "Fig. 4c".into(),
+            window: 100,
+            ideal: vec![
+                (" (all rewards)".into(), 1_890.0),
+                (" (no carry)".into(), 912.0),
+            ],
+        };
+        reward_figure(&curves, &figure, &path).unwrap();
+        let svg = std::fs::read_to_string(&path).unwrap();
+        for k in 0..2 {
+            let (r, g, b) = Palette99::pick(k).rgb();
+            let thin = format!("stroke=\"#{r:02X}{g:02X}{b:02X}\" stroke-width=\"1\"");
+            assert!(svg.contains(&thin), "no dashed line in curve {k}'s colour");
+        }
     }
 }
