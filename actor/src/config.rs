@@ -58,6 +58,9 @@ pub struct ActorConfig {
     /// Standard deviation of the Gaussian action noise (`docs/spec.md` §4:
     /// 0.1).
     pub noise: f64,
+    /// Correlation of each environment's noise from one step to the next,
+    /// in [0, 1): 0 draws it afresh every step (`docs/spec.md` §4).
+    pub noise_correlation: f64,
     /// Environments driven by the planner instead of the policy, with the
     /// same noise: demonstrations that show the critics what dodging is
     /// worth from the first step (their episodes count in the training
@@ -83,6 +86,7 @@ impl Default for ActorConfig {
             seed: 0,
             seed_from_id: false,
             noise: 0.1,
+            noise_correlation: 0.0,
             demonstrators: 0,
             metrics_listen: None,
             reconnect_initial_ms: 100,
@@ -158,6 +162,12 @@ impl ActorConfig {
                 format!("must be finite and >= 0, got {}", self.noise),
             );
         }
+        if !(0.0..1.0).contains(&self.noise_correlation) {
+            return invalid(
+                "noise_correlation",
+                format!("must lie in [0, 1), got {}", self.noise_correlation),
+            );
+        }
         if self.reconnect_initial_ms == 0 || self.reconnect_max_ms < self.reconnect_initial_ms {
             return invalid(
                 "reconnect_max_ms",
@@ -199,5 +209,22 @@ mod tests {
         config(4).validate().unwrap();
         let err = config(5).validate().unwrap_err().to_string();
         assert!(err.contains("demonstrators"), "{err}");
+    }
+
+    #[test]
+    fn noise_correlation_must_lie_below_one() {
+        let config = |noise_correlation| ActorConfig {
+            noise_correlation,
+            ..ActorConfig::default()
+        };
+        config(0.0).validate().unwrap();
+        config(0.95).validate().unwrap();
+        for bad in [1.0, -0.1, f64::NAN] {
+            let err = config(bad).validate().unwrap_err().to_string();
+            assert!(
+                err.contains("noise_correlation") && err.contains("[0, 1)"),
+                "{err}"
+            );
+        }
     }
 }

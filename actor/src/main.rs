@@ -4,6 +4,7 @@
 
 mod act;
 mod bench;
+mod exploration;
 mod prometheus_metrics;
 mod stream;
 

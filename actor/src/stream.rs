@@ -3,13 +3,14 @@
 //!
 //! Actions are uniformly random while the learner's acknowledgements say so
 //! (`docs/spec.md` §4's first 10,000 steps), then the newest snapshot's actions
-//! plus Gaussian noise. At most `max_unacked` batches are in flight: when the
+//! plus Gaussian noise ([`ExplorationNoise`]). At most `max_unacked` batches are in flight: when the
 //! learner applies back-pressure the actor waits instead of queueing. When the
 //! learner goes away the actor reconnects with exponential backoff and jitter
 //! and resends the batches it has no acknowledgement for; the learner
 //! recognises a resent batch by its session (a random number drawn at start)
 //! and sequence number, and stores it once.
 
+use crate::exploration::ExplorationNoise;
 use anyhow::Context;
 use burn::tensor::Device;
 use serde::Serialize;
@@ -130,7 +131,7 @@ struct Actor {
     envs: VecEnv,
     actions: Vec<Action>,
     uniform: UniformRandom,
-    noise: SplitMix64,
+    noise: ExplorationNoise,
     /// Drives the first `actor.demonstrators` environments.
     planner: Planner,
     policy: Option<(u64, NetworkPolicy)>,
@@ -224,7 +225,12 @@ impl Actor {
             envs: VecEnv::new(&file.env, config.envs, seed)?,
             actions: vec![Action::ZERO; config.envs],
             uniform: UniformRandom::new(seed),
-            noise: SplitMix64::derived(seed, 0x0015e),
+            noise: ExplorationNoise::new(
+                config.noise,
+                config.noise_correlation,
+                config.envs,
+                SplitMix64::derived(seed, 0x0015e),
+            ),
             planner: Planner::for_config(&file.env),
             policy: None,
             explore_uniformly: true,
@@ -483,12 +489,10 @@ impl Actor {
                 demonstrators
             }
         };
-        let sigma = self.file.actor.noise;
-        for a in &mut self.actions[..noisy] {
+        for (env, a) in self.actions[..noisy].iter_mut().enumerate() {
             let [x, y] = a.components();
-            let (nx, ny) = (self.noise.normal(), self.noise.normal());
-            *a = Action::clipped(x + (sigma * nx) as f32, y + (sigma * ny) as f32)
-                .unwrap_or(Action::ZERO);
+            let [nx, ny] = self.noise.next(env);
+            *a = Action::clipped(x + nx as f32, y + ny as f32).unwrap_or(Action::ZERO);
         }
     }
 
