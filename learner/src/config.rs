@@ -11,7 +11,7 @@ use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
 use tweezer_config::{ConfigError, read_toml};
 use tweezer_gym::EnvConfig;
-use tweezer_nets::{ActionJoin, Architecture, Pooling, SetShape, SphereInputs};
+use tweezer_nets::{ActionJoin, Architecture, Frame, Pooling, SetShape, SphereInputs};
 
 /// The whole file.
 #[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
@@ -266,6 +266,9 @@ pub struct SetNetworkConfig {
     pub action_join: ActionJoin,
     /// LayerNorm in the critic's layers after pooling.
     pub critic_layer_norm: bool,
+    /// `stage`, or `goal`: the scene, the target vector and the action
+    /// along and across the heading to the target.
+    pub frame: Frame,
 }
 
 impl Default for SetNetworkConfig {
@@ -280,6 +283,7 @@ impl Default for SetNetworkConfig {
             inputs: shape.inputs,
             action_join: shape.action_join,
             critic_layer_norm: shape.critic_layer_norm,
+            frame: shape.frame,
         }
     }
 }
@@ -301,6 +305,7 @@ impl NetworkConfig {
                 inputs: s.inputs,
                 action_join: s.action_join,
                 critic_layer_norm: s.critic_layer_norm,
+                frame: s.frame,
             }),
         }
     }

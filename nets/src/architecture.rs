@@ -141,6 +141,37 @@ impl ActionJoin {
     }
 }
 
+/// The frame a set network reads the scene and acts in.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Frame {
+    /// The stage's axes.
+    #[default]
+    Stage,
+    /// Axes turned so that x points at the target: offsets, displacements,
+    /// the target vector and the action alike. A detour is then the same
+    /// function of the scene whichever way the target lies, so what one
+    /// episode teaches holds at every target angle.
+    Goal,
+}
+
+impl Frame {
+    /// Its name in configs and snapshot metadata.
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::Stage => "stage",
+            Self::Goal => "goal",
+        }
+    }
+
+    /// The frame called `name`.
+    pub fn from_name(name: &str) -> Option<Self> {
+        [Self::Stage, Self::Goal]
+            .into_iter()
+            .find(|f| f.name() == name)
+    }
+}
+
 /// The set network's hyper-parameters and the field of view its inputs
 /// are scaled by.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
@@ -167,13 +198,16 @@ pub struct SetShape {
     /// (LayerNorm before each ReLU).
     #[serde(default)]
     pub critic_layer_norm: bool,
+    /// The frame it reads and acts in.
+    #[serde(default)]
+    pub frame: Frame,
 }
 
 impl SetShape {
     /// The default set network (the `lean` preset's) for a `fov_px` field:
     /// 64-wide per-sphere and head layers, max and mean pooling, the 32
     /// nearest spheres, positions only, the critic's action joined after
-    /// pooling.
+    /// pooling, in the stage's frame.
     pub fn new(fov_px: [u32; 2]) -> Self {
         Self {
             sphere_hidden: 64,
@@ -184,6 +218,7 @@ impl SetShape {
             inputs: SphereInputs::Positions,
             action_join: ActionJoin::Pooled,
             critic_layer_norm: false,
+            frame: Frame::Stage,
         }
     }
 }
@@ -235,6 +270,7 @@ impl Architecture {
                 ("inputs", s.inputs.name().to_string()),
                 ("action_join", s.action_join.name().to_string()),
                 ("critic_layer_norm", s.critic_layer_norm.to_string()),
+                ("frame", s.frame.name().to_string()),
             ],
         }
     }
@@ -282,6 +318,13 @@ impl Architecture {
                 critic_layer_norm: match field("critic_layer_norm") {
                     None => false,
                     Some(_) => parse(&field, "critic_layer_norm")?,
+                },
+                // Files from before the frame was chosen: the stage's.
+                frame: match field("frame") {
+                    None => Frame::Stage,
+                    Some(name) => {
+                        Frame::from_name(name).ok_or(ArchitectureError::Field("frame"))?
+                    }
                 },
             }),
             other => return Err(ArchitectureError::Unknown(other.to_string())),

@@ -17,6 +17,7 @@ mod architecture;
 pub mod cpu_kernels;
 mod critic;
 mod encoder;
+mod goal_frame;
 mod head;
 mod images;
 mod networks;
@@ -29,8 +30,8 @@ mod spheres;
 
 pub use actor::{Actor, ActorConfig};
 pub use architecture::{
-    ActionJoin, Architecture, ArchitectureError, PAPER_ARCHITECTURE, Pooling, SET_ARCHITECTURE,
-    SetShape, SphereInputs,
+    ActionJoin, Architecture, ArchitectureError, Frame, PAPER_ARCHITECTURE, Pooling,
+    SET_ARCHITECTURE, SetShape, SphereInputs,
 };
 pub use critic::{Critic, CriticConfig};
 pub use encoder::{Encoder, EncoderConfig};

@@ -223,6 +223,7 @@ impl Networks for SetNetworks {
     fn actor(&self, device: &Device) -> SetActor {
         SetActorConfig::new(self.encoder())
             .with_hidden(self.shape.head_hidden)
+            .with_frame(self.shape.frame)
             .init(device)
     }
 
@@ -231,6 +232,7 @@ impl Networks for SetNetworks {
             .with_hidden(self.shape.head_hidden)
             .with_action_join(self.shape.action_join)
             .with_layer_norm(self.shape.critic_layer_norm)
+            .with_frame(self.shape.frame)
             .init(device)
     }
 

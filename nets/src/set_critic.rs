@@ -1,6 +1,7 @@
 //! The action-value network that reads sphere centres.
 
-use crate::architecture::ActionJoin;
+use crate::architecture::{ActionJoin, Frame};
+use crate::goal_frame::rows_to_goal;
 use crate::head::{Head, HeadConfig};
 use crate::set_encoder::{SetEncoder, SetEncoderConfig};
 use crate::spheres::{SetBatch, rows_or_zero};
@@ -17,6 +18,8 @@ pub struct SetCritic {
     /// [`ActionJoin::PerSphere`].
     per_sphere: Option<Linear>,
     head: Head,
+    #[module(skip)]
+    frame: Frame,
 }
 
 /// The set critic's shape.
@@ -33,6 +36,9 @@ pub struct SetCriticConfig {
     /// LayerNorm in the layers after pooling.
     #[config(default = false)]
     pub layer_norm: bool,
+    /// The frame it reads the scene and the action in.
+    #[config(default = "Frame::Stage")]
+    pub frame: Frame,
 }
 
 impl SetCriticConfig {
@@ -50,17 +56,25 @@ impl SetCriticConfig {
                 .with_hidden(self.hidden)
                 .with_layer_norm(self.layer_norm)
                 .init(device),
+            frame: self.frame,
         }
     }
 }
 
-/// What the critic computes of a set before it sees the action.
+/// What the critic computes of a set before it sees the action, and the
+/// heading that turns the vector and the action into the goal frame.
+#[derive(Clone, Debug)]
+pub struct SetFeatures {
+    seen: Seen,
+    heading: Tensor<2>,
+}
+
 #[derive(Clone, Debug)]
 #[expect(
     clippy::large_enum_variant,
     reason = "made and moved once per pass: a box would only add an allocation"
 )]
-pub enum SetFeatures {
+enum Seen {
     /// The pooled features, `[batch, features]`.
     Pooled(Tensor<2>),
     /// Each sphere's first-layer map, the action not yet joined (the rows
@@ -71,10 +85,11 @@ pub enum SetFeatures {
 impl SetFeatures {
     /// The same features cut from the autodiff graph.
     pub fn detach(self) -> Self {
-        match self {
-            Self::Pooled(x) => Self::Pooled(x.detach()),
-            Self::PerSphere(set) => Self::PerSphere(set.map_spheres(Tensor::detach)),
-        }
+        let seen = match self.seen {
+            Seen::Pooled(x) => Seen::Pooled(x.detach()),
+            Seen::PerSphere(set) => Seen::PerSphere(set.map_spheres(Tensor::detach)),
+        };
+        Self { seen, ..self }
     }
 }
 
@@ -93,12 +108,14 @@ impl SetCritic {
     /// What [`Self::forward`] computes first, and what does not depend on
     /// the action.
     pub fn encode(&self, set: SetBatch) -> SetFeatures {
-        match self.per_sphere {
-            None => SetFeatures::Pooled(self.encoder.forward(set)),
+        let heading = set.heading.clone();
+        let seen = match self.per_sphere {
+            None => Seen::Pooled(self.encoder.forward(set)),
             Some(_) => {
-                SetFeatures::PerSphere(set.map_spheres(|spheres| self.encoder.first_layer(spheres)))
+                Seen::PerSphere(set.map_spheres(|spheres| self.encoder.first_layer(spheres)))
             }
-        }
+        };
+        SetFeatures { seen, heading }
     }
 
     /// Q from the set's features, target vector and action.
@@ -108,9 +125,16 @@ impl SetCritic {
         vector: Tensor<2>,
         action: Tensor<2>,
     ) -> Tensor<2> {
-        let pooled = match (features, &self.per_sphere) {
-            (SetFeatures::Pooled(pooled), None) => pooled,
-            (SetFeatures::PerSphere(first), Some(join)) => {
+        let (vector, action) = match self.frame {
+            Frame::Stage => (vector, action),
+            Frame::Goal => (
+                rows_to_goal(vector, features.heading.clone()),
+                rows_to_goal(action, features.heading),
+            ),
+        };
+        let pooled = match (features.seen, &self.per_sphere) {
+            (Seen::Pooled(pooled), None) => pooled,
+            (Seen::PerSphere(first), Some(join)) => {
                 // The action's term, one row per set, gathered to its
                 // spheres (zeros for the filler of a batch without any).
                 let term = rows_or_zero(join.forward(action.clone()), first.owners.clone()); // [spheres, hidden]

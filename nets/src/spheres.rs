@@ -4,10 +4,13 @@
 //! its distance; with [`SphereInputs::Motion`], also its displacement since
 //! the previous step and whether it is new to the view; with
 //! [`SphereInputs::Goal`], also the offset and displacement in the frame
-//! that points at the target; packed with where each lands in its set. No rendering: the replay's centres go in as they
-//! are.
+//! that points at the target; in [`Frame::Goal`], every offset and
+//! displacement along and across the heading to the target. Packed with
+//! where each lands in its set, and each scene's heading. No rendering: the
+//! replay's centres go in as they are.
 
-use crate::architecture::{SetShape, SphereInputs};
+use crate::architecture::{Frame, SetShape, SphereInputs};
+use crate::goal_frame::to_goal;
 use burn::module::Module;
 use burn::tensor::{Device, Int, Tensor, TensorData};
 use tweezer_gym::Observation;
@@ -57,7 +60,7 @@ impl<'a> Scene<'a> {
     }
 
     /// The unit vector towards the target; x where the trap is on it.
-    fn heading(&self) -> [f32; 2] {
+    pub(crate) fn heading(&self) -> [f32; 2] {
         let [x, y] = self.vector;
         let norm = x.hypot(y);
         if norm > 1e-6 && norm.is_finite() {
@@ -83,6 +86,8 @@ pub struct SphereSets {
     max_spheres: usize,
     /// What each sphere's row holds.
     inputs: SphereInputs,
+    /// The axes positions and displacements are given along.
+    frame: Frame,
 }
 
 /// A batch of sets: every sphere of the batch packed in one matrix (the
@@ -106,6 +111,9 @@ pub struct SetBatch {
     pub counts: Tensor<2>,
     /// Slots per set: the largest set of the batch (at least 1).
     pub width: usize,
+    /// `[batch, 2]`: each scene's unit vector towards the target, the x
+    /// axis of [`Frame::Goal`].
+    pub heading: Tensor<2>,
 }
 
 impl SetBatch {
@@ -114,6 +122,7 @@ impl SetBatch {
         Self {
             spheres: self.spheres.valid(),
             counts: self.counts.valid(),
+            heading: self.heading.valid(),
             ..self
         }
     }
@@ -155,6 +164,7 @@ impl SphereSets {
             scale_px: 0.5 * shape.fov_px[0] as f32,
             max_spheres: shape.max_spheres,
             inputs: shape.inputs,
+            frame: shape.frame,
         }
     }
 
@@ -165,21 +175,28 @@ impl SphereSets {
     /// displacement reads 0), then (with goal) the position and the
     /// displacement along and across the heading to the target.
     pub fn features(&self, scene: Scene) -> Vec<Vec<f32>> {
-        let [ux, uy] = scene.heading();
+        let heading = scene.heading();
+        let turn = |v: [f32; 2]| match self.frame {
+            Frame::Stage => v,
+            Frame::Goal => to_goal(v, heading),
+        };
         let mut rows: Vec<Vec<f32>> = scene
             .centres
             .iter()
             .enumerate()
             .map(|(k, c)| {
-                let dx = (c[0] - self.trap_px[0]) / self.scale_px;
-                let dy = (c[1] - self.trap_px[1]) / self.scale_px;
+                let [dx, dy] = turn([
+                    (c[0] - self.trap_px[0]) / self.scale_px,
+                    (c[1] - self.trap_px[1]) / self.scale_px,
+                ]);
                 let mut row = Vec::with_capacity(self.inputs.features());
                 row.extend([dx, dy, dx.hypot(dy)]);
                 if self.inputs == SphereInputs::Positions {
                     return row;
                 }
                 let (mx, my) = match scene.displacement(k) {
-                    Some([mx, my]) => {
+                    Some(d) => {
+                        let [mx, my] = turn(d);
                         let m = (mx / MOTION_SCALE_PX, my / MOTION_SCALE_PX);
                         row.extend([m.0, m.1, 0.0]);
                         m
@@ -190,12 +207,8 @@ impl SphereSets {
                     }
                 };
                 if self.inputs == SphereInputs::Goal {
-                    row.extend([
-                        dx * ux + dy * uy,
-                        dy * ux - dx * uy,
-                        mx * ux + my * uy,
-                        my * ux - mx * uy,
-                    ]);
+                    row.extend(to_goal([dx, dy], heading));
+                    row.extend(to_goal([mx, my], heading));
                 }
                 row
             })
@@ -225,7 +238,8 @@ impl SphereSets {
         device: &Device,
     ) -> SetBatch {
         let per_sphere = self.inputs.features();
-        let sets: Vec<_> = scenes.map(|s| self.features(s)).collect();
+        let (sets, headings): (Vec<_>, Vec<_>) =
+            scenes.map(|s| (self.features(s), s.heading())).unzip();
         let width = sets.iter().map(Vec::len).max().unwrap_or(0).max(min_len);
         let packed = sets.iter().map(Vec::len).sum::<usize>().max(1);
         let mut features = Vec::with_capacity(packed * per_sphere);
@@ -249,6 +263,7 @@ impl SphereSets {
             owners: Tensor::from_data(TensorData::new(owners, [packed]), device),
             counts: Tensor::from_data(TensorData::new(counts, [n, 1]), device),
             width,
+            heading: Tensor::from_data(TensorData::new(headings.concat(), [n, 2]), device),
         }
     }
 }

@@ -4,8 +4,8 @@
 use burn::tensor::{Device, Tensor, TensorData};
 use tweezer_gym::SplitMix64;
 use tweezer_nets::{
-    ActionJoin, MOTION_SCALE_PX, Pooling, Scene, SetActor, SetActorConfig, SetCritic,
-    SetCriticConfig, SetEncoderConfig, SetShape, SphereInputs, SphereSets,
+    ActionJoin, Frame, MOTION_SCALE_PX, Networks, Pooling, Scene, SetActor, SetActorConfig,
+    SetCritic, SetCriticConfig, SetEncoderConfig, SetNetworks, SetShape, SphereInputs, SphereSets,
 };
 
 const FOV: [u32; 2] = [320, 256];
@@ -265,4 +265,73 @@ fn goal_inputs_turn_offset_and_motion_towards_the_target() {
             .collect::<Vec<_>>(),
         "on target",
     );
+}
+
+/// `v` turned a quarter turn `k` times anticlockwise: exact in floats, and
+/// it maps the stage's [-1, 1]² onto itself.
+fn quarter_turns([x, y]: [f32; 2], k: usize) -> [f32; 2] {
+    (0..k % 4).fold([x, y], |[x, y], _| [-y, x])
+}
+
+#[test]
+fn in_the_goal_frame_a_turned_scene_turns_the_action_and_keeps_the_value() {
+    let device = Device::flex();
+    let mut rng = SplitMix64::new(23);
+    let shape = SetShape {
+        inputs: SphereInputs::Motion,
+        frame: Frame::Goal,
+        ..SetShape::new(FOV)
+    };
+    let networks = SetNetworks::new(shape, FOV);
+    let (actor, critic) = (networks.actor(&device), networks.critic(&device));
+    let trap = FOV.map(|v| 0.5 * v as f32);
+    let centres = scene(&mut rng, 12);
+    let moves: Vec<_> = (0..12)
+        .map(|k| {
+            (k % 5 != 0).then(|| [rng.uniform(-2.0, 2.0) as f32, rng.uniform(-2.0, 2.0) as f32])
+        })
+        .collect();
+    let vectors = [[0.8, 0.1], [-0.3, 0.6], [0.05, -0.02]];
+    let act = |k: usize| {
+        let turned: Vec<_> = centres
+            .iter()
+            .map(|c| {
+                let [x, y] = quarter_turns([c[0] - trap[0], c[1] - trap[1]], k);
+                [x + trap[0], y + trap[1]]
+            })
+            .collect();
+        let moved: Vec<_> = moves
+            .iter()
+            .map(|m| m.map(|m| quarter_turns(m, k)))
+            .collect();
+        let vs: Vec<_> = vectors.iter().map(|&v| quarter_turns(v, k)).collect();
+        let batch = || {
+            let scenes = vs.iter().map(|&v| Scene::new(&turned, &moved, v));
+            networks.sets().batch(scenes, &device)
+        };
+        let vector =
+            || Tensor::<2>::from_data(TensorData::new(vs.concat(), [vs.len(), 2]), &device);
+        let action = actor.forward(batch(), vector());
+        let q = critic.forward(batch(), vector(), action.clone());
+        let values = |t: Tensor<2>| t.into_data().try_to_vec::<f32>().unwrap();
+        (values(action), values(q))
+    };
+    let (action, q) = act(0);
+    assert!(action.iter().any(|a| a.abs() > 1e-3), "{action:?}");
+    for k in 1..4 {
+        let (turned, r) = act(k);
+        let expected: Vec<f32> = action
+            .chunks(2)
+            .flat_map(|a| quarter_turns([a[0], a[1]], k))
+            .collect();
+        for (a, b) in turned.iter().zip(&expected) {
+            assert!(
+                (a - b).abs() <= 1e-5,
+                "{k} quarter turns: {turned:?} vs {expected:?}"
+            );
+        }
+        for (a, b) in r.iter().zip(&q) {
+            assert!((a - b).abs() <= 1e-4, "{k} quarter turns: {r:?} vs {q:?}");
+        }
+    }
 }

@@ -5,7 +5,7 @@ use burn::tensor::{Device, Distribution, Tensor};
 use std::collections::HashMap;
 use tweezer_gym::{EnvConfig, ImageConfig, Observation, Policy, Renderer};
 use tweezer_nets::{
-    ActionJoin, Architecture, NetworkPolicy, Networks, PaperNetworks, Pooling, SetNetworks,
+    ActionJoin, Architecture, Frame, NetworkPolicy, Networks, PaperNetworks, Pooling, SetNetworks,
     SetShape, SnapshotError, SnapshotInfo, SphereInputs, decode, encode, file_sha256, read_info,
 };
 
@@ -105,6 +105,7 @@ fn a_set_snapshot_round_trips_with_its_hyper_parameters() {
         inputs: SphereInputs::Motion,
         action_join: ActionJoin::PerSphere,
         critic_layer_norm: true,
+        frame: Frame::Goal,
     };
     let networks = set(shape);
     let (actor, bytes) = snapshot(&networks, &device);
@@ -157,6 +158,15 @@ fn mismatched_architectures_are_refused_naming_what_differs() {
         .unwrap_err()
         .to_string();
     assert!(err.ends_with("inputs positions vs motion"), "{err}");
+    // One acting in the goal frame refuses one trained in the stage's.
+    let turned = SetShape {
+        frame: Frame::Goal,
+        ..shape
+    };
+    let err = decode(&sets, &set(turned), &device)
+        .unwrap_err()
+        .to_string();
+    assert!(err.ends_with("frame stage vs goal"), "{err}");
     let err = decode(&sets, &paper(80, 64), &device)
         .unwrap_err()
         .to_string();

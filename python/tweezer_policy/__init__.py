@@ -14,7 +14,9 @@ renderer draws them (`Renderer`); the set network reads each sphere's
 offset from the trap, scaled by half the width of the field it was trained
 on (`sphere_features`), and, where the snapshot's `inputs` is "motion" or
 "goal", each sphere's displacement since the previous step (`None` for one
-new to the view); "goal" also turns both towards the target vector."""
+new to the view); "goal" also turns both towards the target vector. A
+snapshot whose `frame` is "goal" reads the scene and the target vector, and
+acts, along and across the heading to the target (`to_goal_frame`)."""
 
 import numpy as np
 
@@ -24,14 +26,15 @@ from .snapshot import PAPER, SET, Snapshot, SnapshotError, read, weights_sha256
 
 __all__ = [
     "MOTION_SCALE_PX", "PAPER", "SET", "Policy", "Renderer", "Snapshot", "SnapshotError", "goal_frame",
-    "load", "read", "sphere_features", "weights_sha256",
+    "heading", "load", "read", "sphere_features", "to_goal_frame", "weights_sha256",
 ]
 
 # Px of displacement per unit of the motion features (the Rust networks').
 MOTION_SCALE_PX = np.float32(2.0)
 
 
-def sphere_features(centres, fov_px, trained_fov_width, max_spheres, displacements=None, vector=None):
+def sphere_features(centres, fov_px, trained_fov_width, max_spheres, displacements=None, vector=None,
+                    frame_heading=None):
     """One observation's set input: per free sphere (dx, dy, distance) from
     the trap (the FOV centre) in units of half the trained field's width;
     with more than `max_spheres`, the nearest. float32 [n, 3]. With
@@ -39,11 +42,15 @@ def sphere_features(centres, fov_px, trained_fov_width, max_spheres, displacemen
     where none is known), three more: the displacement over
     `MOTION_SCALE_PX`, and 1 for a sphere new to the view (moving 0). With
     the target `vector` too, four more: the offset and the displacement
-    along and across the heading to the target (x where the vector is 0)."""
+    along and across the heading to the target (x where the vector is 0).
+    With `frame_heading` (a network in the goal frame: `heading(vector)`),
+    offsets and displacements are given along and across it."""
     c = np.asarray(centres, dtype=np.float32).reshape(-1, 2)
     trap = np.float32(0.5) * np.asarray(fov_px, dtype=np.float32)
     scale = np.float32(0.5 * trained_fov_width)
     d = (c - trap) / scale
+    if frame_heading is not None:
+        d = _turned(d, frame_heading)
     features = np.concatenate([d, np.hypot(d[:, :1], d[:, 1:])], axis=1).astype(np.float32)
     if displacements is not None:
         if len(displacements) not in (0, len(c)):
@@ -52,7 +59,10 @@ def sphere_features(centres, fov_px, trained_fov_width, max_spheres, displacemen
         motion[:, 2] = 1.0
         for k, m in enumerate(displacements):
             if m is not None:
-                motion[k] = [np.float32(m[0]) / MOTION_SCALE_PX, np.float32(m[1]) / MOTION_SCALE_PX, 0.0]
+                m = np.asarray(m, dtype=np.float32).reshape(1, 2)
+                if frame_heading is not None:
+                    m = _turned(m, frame_heading)
+                motion[k] = [m[0, 0] / MOTION_SCALE_PX, m[0, 1] / MOTION_SCALE_PX, 0.0]
         features = np.concatenate([features, motion], axis=1)
         if vector is not None:
             features = np.concatenate([features, goal_frame(d, motion[:, :2], vector)], axis=1)
@@ -61,18 +71,42 @@ def sphere_features(centres, fov_px, trained_fov_width, max_spheres, displacemen
     return features
 
 
+def heading(vector):
+    """The unit vector along the target `vector` (x where it is 0): the x
+    axis of the goal frame."""
+    v = np.asarray(vector, dtype=np.float32).reshape(2)
+    norm = np.hypot(v[0], v[1])
+    return v / norm if norm > 1e-6 and np.isfinite(norm) else np.array([1.0, 0.0], dtype=np.float32)
+
+
+def _turned(p, u):
+    """Rows of `p` ([n, 2]) along and across the unit vector `u`."""
+    ux, uy = np.float32(u[0]), np.float32(u[1])
+    return np.stack([p[:, 0] * ux + p[:, 1] * uy, p[:, 1] * ux - p[:, 0] * uy], axis=1).astype(np.float32)
+
+
 def goal_frame(offsets, moves, vector):
     """Offsets and moves ([n, 2] each) in the frame whose x axis points
     along `vector`, as [n, 4] float32: along, across, move along, across."""
-    v = np.asarray(vector, dtype=np.float32).reshape(2)
-    norm = np.hypot(v[0], v[1])
-    u = v / norm if norm > 1e-6 and np.isfinite(norm) else np.array([1.0, 0.0], dtype=np.float32)
-    ux, uy = np.float32(u[0]), np.float32(u[1])
+    u = heading(vector)
+    return np.concatenate([_turned(offsets, u), _turned(moves, u)], axis=1).astype(np.float32)
 
-    def turned(p):
-        return np.stack([p[:, 0] * ux + p[:, 1] * uy, p[:, 1] * ux - p[:, 0] * uy], axis=1)
 
-    return np.concatenate([turned(offsets), turned(moves)], axis=1).astype(np.float32)
+def to_goal_frame(vectors):
+    """For a batch of target vectors ([batch, 2]): each turned into its own
+    goal frame, and the function that turns the network's outputs there
+    (tanh, [batch, 2]) into stage actions, as the Rust set actor does:
+    widened by √2, turned back, and shrunk along their direction into
+    [-1, 1]²."""
+    u = np.stack([heading(v) for v in vectors]).reshape(-1, 2)
+    turned = np.stack([_turned(v.reshape(1, 2), h)[0] for v, h in zip(vectors, u)]).reshape(-1, 2)
+
+    def actions(raw):
+        a = np.sqrt(np.float32(2.0)) * np.asarray(raw, dtype=np.float32)
+        stage = np.stack([a[:, 0] * u[:, 0] - a[:, 1] * u[:, 1], a[:, 0] * u[:, 1] + a[:, 1] * u[:, 0]], axis=1)
+        return stage / np.maximum(np.abs(stage).max(axis=1, keepdims=True), np.float32(1.0))
+
+    return turned.astype(np.float32), actions
 
 
 class Policy:
@@ -110,9 +144,10 @@ class Policy:
         else:
             moves = [None] * len(centres)
         goals = vectors if f["inputs"] == "goal" else [None] * len(centres)
+        frames = [heading(v) for v in vectors] if f["frame"] == "goal" else [None] * len(centres)
         return [
-            sphere_features(c, self.fov_px, f["fov_width"], f["max_spheres"], m, v)
-            for c, m, v in zip(centres, moves, goals)
+            sphere_features(c, self.fov_px, f["fov_width"], f["max_spheres"], m, v, h)
+            for c, m, v, h in zip(centres, moves, goals, frames)
         ]
 
     def act(self, centres, vectors, displacements=None):
@@ -127,9 +162,14 @@ class Policy:
         if displacements is not None and len(displacements) != len(centres):
             raise ValueError(f"{len(centres)} sets of centres but {len(displacements)} of displacements")
         inputs = self.inputs(centres, vectors, displacements)
+        turn_back = None
+        if self.snapshot.fields.get("frame") == "goal":
+            vectors, turn_back = to_goal_frame(vectors)
         if self._torch is not None:
-            return self._torch(inputs, vectors).numpy()
-        return numpy_policy.act(self.snapshot, inputs, vectors).astype(np.float32)
+            raw = self._torch(inputs, vectors).numpy()
+        else:
+            raw = numpy_policy.act(self.snapshot, inputs, vectors)
+        return (raw if turn_back is None else turn_back(raw)).astype(np.float32)
 
 
 def load(path, fov_px=None, sphere_diameter_px=54.0, backend="numpy"):

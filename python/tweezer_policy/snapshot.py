@@ -20,6 +20,9 @@ POOLINGS = ("max_mean", "max", "mean")
 # What a set network reads of each sphere; snapshots without the field read
 # positions.
 INPUTS = ("positions", "motion", "goal")
+# The axes a set network reads and acts along; snapshots without the field
+# use the stage's.
+FRAMES = ("stage", "goal")
 MAX_SIZE = 1 << 16
 
 
@@ -35,7 +38,7 @@ class Snapshot:
     """`tweezer-paper-actor-v1` (the paper's CNN) or `tweezer-set-actor-v1`."""
     fields: dict
     """Its hyper-parameters: ints, and `pooling` and (set network) `inputs`
-    as names."""
+    and `frame` as names."""
     version: int
     training_step: int
     tensors: dict = field(repr=False)
@@ -95,6 +98,12 @@ def read(path):
                 f"architecture field `inputs` = {inputs!r}: this package reads {', '.join(INPUTS)}"
             )
         fields["inputs"] = inputs
+        frame = metadata.get("frame", "stage")
+        if frame not in FRAMES:
+            raise SnapshotError(
+                f"architecture field `frame` = {frame!r}: this package reads {', '.join(FRAMES)}"
+            )
+        fields["frame"] = frame
     for tensor, array in tensors.items():
         if array.dtype != np.float32:
             raise SnapshotError(f"snapshot tensor `{tensor}`: dtype {array.dtype}, expected float32")

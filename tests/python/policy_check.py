@@ -66,6 +66,7 @@ def compare(args):
     snapshot = tweezer_policy.read(args.snapshot)
     report["architecture"] = snapshot.architecture
     report["inputs"] = snapshot.fields.get("inputs")
+    report["frame"] = snapshot.fields.get("frame")
     report["version"] = snapshot.version
     report["actions"] = len(rust)
     report["unsaturated"] = int((np.abs(rust) < 0.99).sum())

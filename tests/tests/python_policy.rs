@@ -1,7 +1,8 @@
 //! The Python policy package (`python/`, installed from its own
 //! `pyproject.toml` into a fresh venv) loads snapshots of both
 //! architectures trained by a short real run (a learner and an actor over
-//! gRPC; the set network reads motion, also in the goal's frame), and its
+//! gRPC; the set network reads motion, also turned towards the goal, or
+//! reads and acts in the goal frame), and its
 //! actions for unseen observations match the Rust policy's (`actor act`) to
 //! 1e-4; it refuses a snapshot whose weights were altered.
 
@@ -112,6 +113,11 @@ fn python_loads_trained_snapshots_of_both_architectures_and_acts_as_rust_does() 
             "set",
             "[learner.network]\nkind = \"set\"\nsphere_hidden = 32\ninputs = \"goal\"\n",
         ),
+        (
+            "set-goal-frame",
+            "[learner.network]\nkind = \"set\"\nsphere_hidden = 32\ninputs = \"motion\"\n\
+             frame = \"goal\"\n",
+        ),
     ] {
         let work = dir.path().join(name);
         std::fs::create_dir(&work).unwrap();
@@ -130,7 +136,7 @@ fn python_loads_trained_snapshots_of_both_architectures_and_acts_as_rust_does() 
                 "7",
             ],
         );
-        let architecture = if name == "set" {
+        let architecture = if name.starts_with("set") {
             "tweezer-set-actor-v1"
         } else {
             "tweezer-paper-actor-v1"
@@ -176,8 +182,10 @@ fn python_loads_trained_snapshots_of_both_architectures_and_acts_as_rust_does() 
                 "{name}: {report}"
             );
             assert_eq!(report["architecture"], architecture);
-            if name == "set" {
-                assert_eq!(report["inputs"], "goal", "{report}");
+            match name {
+                "set" => assert_eq!(report["inputs"], "goal", "{report}"),
+                "set-goal-frame" => assert_eq!(report["frame"], "goal", "{report}"),
+                _ => {}
             }
             unsaturated += report["unsaturated"].as_u64().unwrap();
         }
