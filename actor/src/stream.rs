@@ -3,8 +3,9 @@
 //!
 //! Actions are uniformly random while the learner's acknowledgements say so
 //! (`docs/spec.md` §4's first 10,000 steps), then the newest snapshot's actions
-//! plus Gaussian noise ([`ExplorationNoise`]). At most `max_unacked` batches are in flight: when the
-//! learner applies back-pressure the actor waits instead of queueing. When the
+//! plus Gaussian noise ([`ExplorationNoise`]). At most `max_unacked` batches
+//! are in flight: when the learner applies back-pressure the actor waits
+//! instead of queueing. When the
 //! learner goes away the actor reconnects with exponential backoff and jitter
 //! and resends the batches it has no acknowledgement for; the learner
 //! recognises a resent batch by its session (a random number drawn at start)

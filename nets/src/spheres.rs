@@ -185,30 +185,31 @@ impl SphereSets {
             .iter()
             .enumerate()
             .map(|(k, c)| {
-                let [dx, dy] = turn([
+                let offset = [
                     (c[0] - self.trap_px[0]) / self.scale_px,
                     (c[1] - self.trap_px[1]) / self.scale_px,
-                ]);
+                ];
+                let [dx, dy] = turn(offset);
                 let mut row = Vec::with_capacity(self.inputs.features());
                 row.extend([dx, dy, dx.hypot(dy)]);
                 if self.inputs == SphereInputs::Positions {
                     return row;
                 }
-                let (mx, my) = match scene.displacement(k) {
-                    Some(d) => {
-                        let [mx, my] = turn(d);
-                        let m = (mx / MOTION_SCALE_PX, my / MOTION_SCALE_PX);
-                        row.extend([m.0, m.1, 0.0]);
-                        m
+                // The displacement over MOTION_SCALE_PX, along the stage's axes.
+                let moved = scene
+                    .displacement(k)
+                    .map(|d| d.map(|v| v / MOTION_SCALE_PX));
+                match moved {
+                    Some(m) => {
+                        row.extend(turn(m));
+                        row.push(0.0);
                     }
-                    None => {
-                        row.extend([0.0, 0.0, 1.0]);
-                        (0.0, 0.0)
-                    }
-                };
+                    None => row.extend([0.0, 0.0, 1.0]),
+                }
+                // Turned from the stage's axes, whatever the frame.
                 if self.inputs == SphereInputs::Goal {
-                    row.extend(to_goal([dx, dy], heading));
-                    row.extend(to_goal([mx, my], heading));
+                    row.extend(to_goal(offset, heading));
+                    row.extend(to_goal(moved.unwrap_or([0.0; 2]), heading));
                 }
                 row
             })

@@ -265,6 +265,31 @@ fn goal_inputs_turn_offset_and_motion_towards_the_target() {
             .collect::<Vec<_>>(),
         "on target",
     );
+    // In the goal frame the offset and displacement are turned once: the
+    // added columns repeat them, not turn them again.
+    let turned = SphereSets::new(
+        &SetShape {
+            frame: Frame::Goal,
+            ..shape
+        },
+        FOV,
+    )
+    .features(Scene::new(&centres, &moves, [0.0, 0.5]));
+    assert_close(
+        &turned[0][..2],
+        &features[0][6..8],
+        "offset in the goal frame",
+    );
+    assert_close(
+        &turned[0][3..5],
+        &features[0][8..],
+        "move in the goal frame",
+    );
+    assert_close(
+        &turned[0][6..],
+        &features[0][6..],
+        "goal columns in the goal frame",
+    );
 }
 
 /// `v` turned a quarter turn `k` times anticlockwise: exact in floats, and

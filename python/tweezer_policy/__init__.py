@@ -49,9 +49,12 @@ def sphere_features(centres, fov_px, trained_fov_width, max_spheres, displacemen
     trap = np.float32(0.5) * np.asarray(fov_px, dtype=np.float32)
     scale = np.float32(0.5 * trained_fov_width)
     d = (c - trap) / scale
-    if frame_heading is not None:
-        d = _turned(d, frame_heading)
-    features = np.concatenate([d, np.hypot(d[:, :1], d[:, 1:])], axis=1).astype(np.float32)
+
+    def turn(p):
+        return p if frame_heading is None else _turned(p, frame_heading)
+
+    offsets = turn(d)
+    features = np.concatenate([offsets, np.hypot(offsets[:, :1], offsets[:, 1:])], axis=1).astype(np.float32)
     if displacements is not None:
         if len(displacements) not in (0, len(c)):
             raise ValueError(f"{len(displacements)} displacements for {len(c)} centres")
@@ -59,12 +62,10 @@ def sphere_features(centres, fov_px, trained_fov_width, max_spheres, displacemen
         motion[:, 2] = 1.0
         for k, m in enumerate(displacements):
             if m is not None:
-                m = np.asarray(m, dtype=np.float32).reshape(1, 2)
-                if frame_heading is not None:
-                    m = _turned(m, frame_heading)
-                motion[k] = [m[0, 0] / MOTION_SCALE_PX, m[0, 1] / MOTION_SCALE_PX, 0.0]
-        features = np.concatenate([features, motion], axis=1)
+                motion[k] = [np.float32(m[0]) / MOTION_SCALE_PX, np.float32(m[1]) / MOTION_SCALE_PX, 0.0]
+        features = np.concatenate([features, turn(motion[:, :2]), motion[:, 2:]], axis=1)
         if vector is not None:
+            # Turned from the stage's axes, whatever the frame.
             features = np.concatenate([features, goal_frame(d, motion[:, :2], vector)], axis=1)
     if len(features) > max_spheres:
         features = features[np.argsort(features[:, 2], kind="stable")[:max_spheres]]
