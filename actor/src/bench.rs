@@ -195,7 +195,12 @@ fn acting(
                 width: width as usize,
             }
         }
-        None => Architecture::Set(SetShape::new(config.fov_px)),
+        // The lean preset's: in the goal frame (the critic's action join
+        // does not touch the actor).
+        None => Architecture::Set(SetShape {
+            frame: tweezer_nets::Frame::Goal,
+            ..SetShape::new(config.fov_px)
+        }),
     };
     let mut policy = with_networks!(architecture.networks(&config)?, |networks| {
         let actor = networks.actor(&device);
