@@ -122,6 +122,11 @@ pub enum ActionJoin {
     /// layers judge what this action does near this sphere, and the max
     /// keeps the sphere it runs into.
     PerSphere,
+    /// As [`Self::PerSphere`], and each sphere's first layer also reads
+    /// where the trap, held at this action, would pass it: how far ahead
+    /// along the action and how far to its side. The geometry of a
+    /// collision, given rather than learned.
+    Approach,
 }
 
 impl ActionJoin {
@@ -130,12 +135,13 @@ impl ActionJoin {
         match self {
             Self::Pooled => "pooled",
             Self::PerSphere => "per_sphere",
+            Self::Approach => "approach",
         }
     }
 
     /// The join called `name`.
     pub fn from_name(name: &str) -> Option<Self> {
-        [Self::Pooled, Self::PerSphere]
+        [Self::Pooled, Self::PerSphere, Self::Approach]
             .into_iter()
             .find(|j| j.name() == name)
     }

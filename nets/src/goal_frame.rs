@@ -37,6 +37,6 @@ pub(crate) fn rows_from_goal(v: Tensor<2>, heading: Tensor<2>) -> Tensor<2> {
     )
 }
 
-fn columns(v: Tensor<2>) -> [Tensor<2>; 2] {
+pub(crate) fn columns(v: Tensor<2>) -> [Tensor<2>; 2] {
     [v.clone().narrow(1, 0, 1), v.narrow(1, 1, 1)]
 }

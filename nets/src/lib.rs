@@ -13,6 +13,7 @@
 //! statistics.
 
 mod actor;
+mod approach;
 mod architecture;
 pub mod cpu_kernels;
 mod critic;

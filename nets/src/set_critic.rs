@@ -1,5 +1,6 @@
 //! The action-value network that reads sphere centres.
 
+use crate::approach::{PASSING_FEATURES, passing};
 use crate::architecture::{ActionJoin, Frame};
 use crate::goal_frame::rows_to_goal;
 use crate::head::{Head, HeadConfig};
@@ -15,8 +16,11 @@ use burn::tensor::{Device, Tensor};
 pub struct SetCritic {
     encoder: SetEncoder,
     /// The action's term in each sphere's first layer, with
-    /// [`ActionJoin::PerSphere`].
+    /// [`ActionJoin::PerSphere`] or [`ActionJoin::Approach`].
     per_sphere: Option<Linear>,
+    /// The term of where the action passes each sphere, with
+    /// [`ActionJoin::Approach`].
+    approach: Option<Linear>,
     head: Head,
     #[module(skip)]
     frame: Frame,
@@ -46,9 +50,14 @@ impl SetCriticConfig {
     pub fn init(&self, device: &Device) -> SetCritic {
         SetCritic {
             encoder: self.encoder.init(device),
-            per_sphere: (self.action_join == ActionJoin::PerSphere).then(|| {
-                // The first layer's bias is the encoder's.
+            // The first layer's bias is the encoder's.
+            per_sphere: (self.action_join != ActionJoin::Pooled).then(|| {
                 LinearConfig::new(2, self.encoder.hidden)
+                    .with_bias(false)
+                    .init(device)
+            }),
+            approach: (self.action_join == ActionJoin::Approach).then(|| {
+                LinearConfig::new(PASSING_FEATURES, self.encoder.hidden)
                     .with_bias(false)
                     .init(device)
             }),
@@ -78,8 +87,9 @@ enum Seen {
     /// The pooled features, `[batch, features]`.
     Pooled(Tensor<2>),
     /// Each sphere's first-layer map, the action not yet joined (the rows
-    /// of a [`SetBatch`] of `[spheres, hidden]`).
-    PerSphere(SetBatch),
+    /// of a [`SetBatch`] of `[spheres, hidden]`), and with
+    /// [`ActionJoin::Approach`] each sphere's offset, `[spheres, 2]`.
+    PerSphere(SetBatch, Option<Tensor<2>>),
 }
 
 impl SetFeatures {
@@ -87,7 +97,9 @@ impl SetFeatures {
     pub fn detach(self) -> Self {
         let seen = match self.seen {
             Seen::Pooled(x) => Seen::Pooled(x.detach()),
-            Seen::PerSphere(set) => Seen::PerSphere(set.map_spheres(Tensor::detach)),
+            Seen::PerSphere(set, offsets) => {
+                Seen::PerSphere(set.map_spheres(Tensor::detach), offsets.map(Tensor::detach))
+            }
         };
         Self { seen, ..self }
     }
@@ -112,7 +124,13 @@ impl SetCritic {
         let seen = match self.per_sphere {
             None => Seen::Pooled(self.encoder.forward(set)),
             Some(_) => {
-                Seen::PerSphere(set.map_spheres(|spheres| self.encoder.first_layer(spheres)))
+                // A row's first two values are the sphere's offset.
+                let offsets = self
+                    .approach
+                    .as_ref()
+                    .map(|_| set.spheres.clone().narrow(1, 0, 2));
+                let first = set.map_spheres(|spheres| self.encoder.first_layer(spheres));
+                Seen::PerSphere(first, offsets)
             }
         };
         SetFeatures { seen, heading }
@@ -134,10 +152,14 @@ impl SetCritic {
         };
         let pooled = match (features.seen, &self.per_sphere) {
             (Seen::Pooled(pooled), None) => pooled,
-            (Seen::PerSphere(first), Some(join)) => {
+            (Seen::PerSphere(first, offsets), Some(join)) => {
                 // The action's term, one row per set, gathered to its
                 // spheres (zeros for the filler of a batch without any).
-                let term = rows_or_zero(join.forward(action.clone()), first.owners.clone()); // [spheres, hidden]
+                let mut term = rows_or_zero(join.forward(action.clone()), first.owners.clone()); // [spheres, hidden]
+                if let (Some(offsets), Some(approach)) = (offsets, &self.approach) {
+                    let actions = rows_or_zero(action.clone(), first.owners.clone()); // [spheres, 2]
+                    term = term + approach.forward(passing(offsets, actions)); // [spheres, hidden]
+                }
                 self.encoder
                     .from_first_layer(first.map_spheres(|spheres| spheres + term)) // [batch, features]
             }

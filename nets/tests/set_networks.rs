@@ -35,7 +35,11 @@ fn nets_pooled(pooling: Pooling, join: ActionJoin, device: &Device) -> (SetActor
     )
 }
 
-const JOINS: [ActionJoin; 2] = [ActionJoin::Pooled, ActionJoin::PerSphere];
+const JOINS: [ActionJoin; 3] = [
+    ActionJoin::Pooled,
+    ActionJoin::PerSphere,
+    ActionJoin::Approach,
+];
 
 fn scene(rng: &mut SplitMix64, spheres: usize) -> Vec<[f32; 2]> {
     (0..spheres)
@@ -120,8 +124,10 @@ fn padding_changes_nothing_and_an_empty_field_of_view_is_a_valid_input() {
     }
     // Nothing in view at all: the batch's one filler row joins no set.
     let empty = vec![Vec::new(), Vec::new()];
-    let (_, q) = outputs(&nets(ActionJoin::PerSphere, &device), &empty, 1, &device);
-    assert!(q.iter().all(|x| x.is_finite()), "{q:?}");
+    for join in [ActionJoin::PerSphere, ActionJoin::Approach] {
+        let (_, q) = outputs(&nets(join, &device), &empty, 1, &device);
+        assert!(q.iter().all(|x| x.is_finite()), "{join:?}: {q:?}");
+    }
 }
 
 /// Each set of a batch is judged with its own action: an action joined to
@@ -129,8 +135,14 @@ fn padding_changes_nothing_and_an_empty_field_of_view_is_a_valid_input() {
 /// neighbours in the batch.
 #[test]
 fn a_per_sphere_critic_joins_each_action_to_its_own_spheres() {
+    for join in [ActionJoin::PerSphere, ActionJoin::Approach] {
+        joins_each_action_to_its_own_spheres(join);
+    }
+}
+
+fn joins_each_action_to_its_own_spheres(join: ActionJoin) {
     let device = Device::flex();
-    let (_, critic) = nets(ActionJoin::PerSphere, &device);
+    let (_, critic) = nets(join, &device);
     let mut rng = SplitMix64::new(5);
     let scenes = [scene(&mut rng, 7), Vec::new(), scene(&mut rng, 12)];
     let sets = sets(64, FOV);
@@ -149,7 +161,7 @@ fn a_per_sphere_critic_joins_each_action_to_its_own_spheres() {
         let alone = q(&scenes[k..=k], &actions[k..=k]);
         assert!(
             (together[k] - alone[0]).abs() <= 1e-5,
-            "set {k}: {} in the batch, {} alone",
+            "{join:?}, set {k}: {} in the batch, {} alone",
             together[k],
             alone[0]
         );
@@ -159,7 +171,7 @@ fn a_per_sphere_critic_joins_each_action_to_its_own_spheres() {
     assert_close(&together[..2], &other[..2], "the other sets' values");
     assert!(
         (together[2] - other[2]).abs() > 1e-6,
-        "{together:?} vs {other:?}"
+        "{join:?}: {together:?} vs {other:?}"
     );
 }
 
