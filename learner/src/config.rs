@@ -93,6 +93,9 @@ pub struct LearnerConfig {
     /// policy at a fixed number of updates, whatever the machine's speed.
     /// It goes on serving, and publishes a snapshot at exactly this many.
     pub max_updates: u64,
+    /// Whether each sampled step is shown mirrored about a random choice of
+    /// the stage's axes (`training::mirror`): four steps for one.
+    pub mirror: bool,
     /// The replay table.
     pub replay: ReplayConfig,
     /// TD3.
@@ -130,6 +133,7 @@ impl Default for LearnerConfig {
             batch_size: 32,
             uniform_steps: 10_000,
             max_updates: 0,
+            mirror: false,
             replay: ReplayConfig::default(),
             td3: Td3Config::default(),
             limiter: LimiterConfig::default(),

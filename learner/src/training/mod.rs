@@ -7,6 +7,7 @@ pub mod divergence;
 #[cfg(any(feature = "cuda", feature = "wgpu"))]
 pub mod gpu_devices;
 pub mod minibatch;
+pub mod mirror;
 pub mod module_updates;
 pub mod passes;
 pub mod td3;

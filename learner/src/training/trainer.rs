@@ -8,6 +8,7 @@ use crate::persistence::checkpoint::{CheckpointHeader, Checkpoints, Loaded};
 use crate::state::LearnerState;
 use crate::training::divergence::{DivergenceGuard, Verdict};
 use crate::training::minibatch::minibatch_tensors;
+use crate::training::mirror::mirror;
 use crate::training::td3::{Td3, UpdateStats};
 use anyhow::{Context, bail};
 use burn::tensor::{Bytes, Device};
@@ -229,12 +230,15 @@ impl<N: Networks> Trainer<N> {
         let _span = tracing::debug_span!("update", n = self.td3.updates() + 1).entered();
         let started = Instant::now();
         let learner = &self.file.learner;
-        let sampled = self.shared.replay().sample_n_step(
+        let mut sampled = self.shared.replay().sample_n_step(
             learner.batch_size,
             learner.td3.n_step,
             learner.td3.gamma,
             &mut self.sampler,
         )?;
+        if learner.mirror {
+            mirror(&mut sampled, self.file.env.fov_px, &mut self.sampler);
+        }
         let batch = minibatch_tensors(&sampled, self.td3.networks(), &self.device);
         let stats = self.td3.update(batch);
         self.shared.table().updated();
