@@ -124,11 +124,7 @@ impl SetCritic {
         let seen = match self.per_sphere {
             None => Seen::Pooled(self.encoder.forward(set)),
             Some(_) => {
-                // A row's first two values are the sphere's offset.
-                let offsets = self
-                    .approach
-                    .as_ref()
-                    .map(|_| set.spheres.clone().narrow(1, 0, 2));
+                let offsets = self.approach.as_ref().map(|_| set.offsets());
                 let first = set.map_spheres(|spheres| self.encoder.first_layer(spheres));
                 Seen::PerSphere(first, offsets)
             }

@@ -136,6 +136,13 @@ impl SetBatch {
         }
     }
 
+    /// Each sphere's offset from the trap, in the network's frame: the
+    /// first two values of its row, as [`SphereSets::features`] lays it
+    /// out. `[spheres, 2]`.
+    pub(crate) fn offsets(&self) -> Tensor<2> {
+        self.spheres.clone().narrow(1, 0, 2)
+    }
+
     /// Sets in the batch.
     pub fn len(&self) -> usize {
         self.counts.dims()[0]
