@@ -108,6 +108,11 @@ impl SphereInputs {
             Self::Goal => 10,
         }
     }
+
+    /// Whether each row carries the displacement beside the position.
+    pub fn has_motion(self) -> bool {
+        matches!(self, Self::Motion | Self::Goal)
+    }
 }
 
 /// Where the set critic joins the action to what it sees.

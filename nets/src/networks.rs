@@ -11,7 +11,7 @@ use crate::images::render_images;
 use crate::set_actor::{SetActor, SetActorConfig};
 use crate::set_critic::{SetCritic, SetCriticConfig, SetFeatures};
 use crate::set_encoder::SetEncoderConfig;
-use crate::spheres::{Scene, SetBatch, SphereSets};
+use crate::spheres::{MOTION_SCALE_PX, Scene, SetBatch, SphereSets};
 use burn::module::{Module, ModuleDisplay};
 use burn::tensor::{Device, Tensor};
 use tweezer_config::ConfigError;
@@ -101,7 +101,7 @@ impl Architecture {
             Self::Paper { .. } => {
                 AnyNetworks::Paper(PaperNetworks::new(Renderer::for_config(env)?))
             }
-            Self::Set(shape) => AnyNetworks::Set(SetNetworks::new(shape, env.fov_px)),
+            Self::Set(shape) => AnyNetworks::Set(SetNetworks::for_env(shape, env)),
         })
     }
 }
@@ -184,16 +184,29 @@ impl Networks for PaperNetworks {
 pub struct SetNetworks {
     shape: SetShape,
     sets: SphereSets,
+    /// How far the trap moves in a step at full action, px: the critic
+    /// weighs an action against each sphere's motion in these units.
+    stage_speed_px: f32,
 }
 
 impl SetNetworks {
     /// Networks of `shape` seeing scenes of a `fov_px` field (which may be
     /// wider than the one `shape` was trained on: more centres, the same
-    /// scale).
+    /// scale), on a stage of the default speed.
     pub fn new(shape: SetShape, fov_px: [u32; 2]) -> Self {
         Self {
             sets: SphereSets::new(&shape, fov_px),
             shape,
+            stage_speed_px: EnvConfig::default().stage_speed_px as f32,
+        }
+    }
+
+    /// The networks of `shape` acting in `env`: its field of view and its
+    /// stage's speed.
+    pub fn for_env(shape: SetShape, env: &EnvConfig) -> Self {
+        Self {
+            stage_speed_px: env.stage_speed_px as f32,
+            ..Self::new(shape, env.fov_px)
         }
     }
 
@@ -233,6 +246,12 @@ impl Networks for SetNetworks {
             .with_action_join(self.shape.action_join)
             .with_layer_norm(self.shape.critic_layer_norm)
             .with_frame(self.shape.frame)
+            .with_motion_in_actions(
+                self.shape
+                    .inputs
+                    .has_motion()
+                    .then_some(MOTION_SCALE_PX / self.stage_speed_px),
+            )
             .init(device)
     }
 

@@ -24,6 +24,11 @@ pub struct SetCritic {
     head: Head,
     #[module(skip)]
     frame: Frame,
+    /// Action units per unit of a row's motion columns, where the rows
+    /// carry motion: the trap then passes each sphere as it moves relative
+    /// to it.
+    #[module(skip)]
+    motion_in_actions: Option<f32>,
 }
 
 /// The set critic's shape.
@@ -43,6 +48,11 @@ pub struct SetCriticConfig {
     /// The frame it reads the scene and the action in.
     #[config(default = "Frame::Stage")]
     pub frame: Frame,
+    /// Action units per unit of the rows' motion columns, where they have
+    /// them: with [`ActionJoin::Approach`], each sphere is passed as the
+    /// trap moves relative to it.
+    #[config(default = "None")]
+    pub motion_in_actions: Option<f32>,
 }
 
 impl SetCriticConfig {
@@ -66,6 +76,7 @@ impl SetCriticConfig {
                 .with_layer_norm(self.layer_norm)
                 .init(device),
             frame: self.frame,
+            motion_in_actions: self.motion_in_actions,
         }
     }
 }
@@ -88,8 +99,44 @@ enum Seen {
     Pooled(Tensor<2>),
     /// Each sphere's first-layer map, the action not yet joined (the rows
     /// of a [`SetBatch`] of `[spheres, hidden]`), and with
-    /// [`ActionJoin::Approach`] each sphere's offset, `[spheres, 2]`.
-    PerSphere(SetBatch, Option<Tensor<2>>),
+    /// [`ActionJoin::Approach`] what the action passes.
+    PerSphere(SetBatch, Option<Passed>),
+}
+
+/// What an action passes: each sphere's offset and, where the rows carry
+/// motion, its velocity in action units; `[spheres, 2]` each.
+#[derive(Clone, Debug)]
+struct Passed {
+    offsets: Tensor<2>,
+    velocities: Option<Tensor<2>>,
+}
+
+impl Passed {
+    /// What was seen of `set`'s spheres; their velocities where the rows
+    /// carry motion, at `motion_in_actions` action units per unit.
+    fn of(set: &SetBatch, motion_in_actions: Option<f32>) -> Self {
+        Self {
+            offsets: set.offsets(),
+            velocities: motion_in_actions.map(|k| set.motions() * k),
+        }
+    }
+
+    /// [`passing`] of each sphere by the trap moving at `actions` (one row
+    /// per sphere) relative to it.
+    fn passing(self, actions: Tensor<2>) -> Tensor<2> {
+        let relative = match self.velocities {
+            Some(v) => actions - v,
+            None => actions,
+        };
+        passing(self.offsets, relative)
+    }
+
+    fn detach(self) -> Self {
+        Self {
+            offsets: self.offsets.detach(),
+            velocities: self.velocities.map(Tensor::detach),
+        }
+    }
 }
 
 impl SetFeatures {
@@ -97,8 +144,8 @@ impl SetFeatures {
     pub fn detach(self) -> Self {
         let seen = match self.seen {
             Seen::Pooled(x) => Seen::Pooled(x.detach()),
-            Seen::PerSphere(set, offsets) => {
-                Seen::PerSphere(set.map_spheres(Tensor::detach), offsets.map(Tensor::detach))
+            Seen::PerSphere(set, passed) => {
+                Seen::PerSphere(set.map_spheres(Tensor::detach), passed.map(Passed::detach))
             }
         };
         Self { seen, ..self }
@@ -124,9 +171,10 @@ impl SetCritic {
         let seen = match self.per_sphere {
             None => Seen::Pooled(self.encoder.forward(set)),
             Some(_) => {
-                let offsets = self.approach.as_ref().map(|_| set.offsets());
+                let passed =
+                    (self.approach.as_ref()).map(|_| Passed::of(&set, self.motion_in_actions));
                 let first = set.map_spheres(|spheres| self.encoder.first_layer(spheres));
-                Seen::PerSphere(first, offsets)
+                Seen::PerSphere(first, passed)
             }
         };
         SetFeatures { seen, heading }
@@ -148,13 +196,13 @@ impl SetCritic {
         };
         let pooled = match (features.seen, &self.per_sphere) {
             (Seen::Pooled(pooled), None) => pooled,
-            (Seen::PerSphere(first, offsets), Some(join)) => {
-                // The action's term, one row per set, gathered to its
-                // spheres (zeros for the filler of a batch without any).
-                let mut term = rows_or_zero(join.forward(action.clone()), first.owners.clone()); // [spheres, hidden]
-                if let (Some(offsets), Some(approach)) = (offsets, &self.approach) {
-                    let actions = rows_or_zero(action.clone(), first.owners.clone()); // [spheres, 2]
-                    term = term + approach.forward(passing(offsets, actions)); // [spheres, hidden]
+            (Seen::PerSphere(first, passed), Some(join)) => {
+                // Each set's action gathered to its spheres (zeros for the
+                // filler of a batch without any), and its term.
+                let actions = rows_or_zero(action.clone(), first.owners.clone()); // [spheres, 2]
+                let mut term = join.forward(actions.clone()); // [spheres, hidden]
+                if let (Some(passed), Some(approach)) = (passed, &self.approach) {
+                    term = term + approach.forward(passed.passing(actions)); // [spheres, hidden]
                 }
                 self.encoder
                     .from_first_layer(first.map_spheres(|spheres| spheres + term)) // [batch, features]
@@ -163,5 +211,55 @@ impl SetCritic {
         };
         let x = Tensor::cat(vec![pooled, vector, action], 1); // [batch, features + 4]
         self.head.forward(x) // [batch, 1]
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::architecture::{SetShape, SphereInputs};
+    use crate::spheres::{MOTION_SCALE_PX, Scene, SphereSets};
+    use burn::tensor::TensorData;
+
+    /// A sphere 64 px right of the trap and 16 px below, moving `moved` px
+    /// since the last step, passed by a trap driven at `action`; stage
+    /// speed 10 px per unit of action.
+    fn passed(moved: [f32; 2], action: [f32; 2]) -> Vec<f32> {
+        let shape = SetShape {
+            inputs: SphereInputs::Motion,
+            ..SetShape::new([320, 256])
+        };
+        let sets = SphereSets::new(&shape, [320, 256]);
+        let device = Device::flex();
+        let centres = [[160.0 + 64.0, 128.0 + 16.0]];
+        let displacements = [Some(moved)];
+        let scene = Scene::new(&centres, &displacements, [1.0, 0.0]);
+        let set = sets.batch([scene].into_iter(), &device);
+        let actions = Tensor::from_data(TensorData::new(action.to_vec(), [1, 2]), &device);
+        Passed::of(&set, Some(MOTION_SCALE_PX / 10.0))
+            .passing(actions)
+            .into_data()
+            .try_to_vec::<f32>()
+            .unwrap()
+    }
+
+    #[test]
+    fn a_sphere_is_passed_as_the_trap_moves_relative_to_it() {
+        // Moving with the trap, it is never approached: as at rest.
+        assert_eq!(passed([5.0, 2.0], [0.5, 0.2]), passed([0.0; 2], [0.0; 2]));
+        // Coming at a trap at rest is passing it at the same speed.
+        let head_on = passed([-2.0, 0.0], [0.0, 0.0]);
+        let driven = passed([0.0, 0.0], [0.2, 0.0]);
+        for (a, b) in head_on.iter().zip(&driven) {
+            assert!((a - b).abs() < 1e-6, "{head_on:?} against {driven:?}");
+        }
+        // Below the trap's line and drifting down 2 px a step while the
+        // trap drives right at 10: missed by 28 px, not 16 (within the
+        // speed floor's shrink). Offsets are in units of 160 px here.
+        let miss = |features: &[f32]| features[2] * 160.0 / 8.0;
+        let straight = passed([0.0, 0.0], [1.0, 0.0]);
+        let drifting = passed([0.0, 2.0], [1.0, 0.0]);
+        assert!((miss(&straight) - 16.0).abs() < 0.5, "{straight:?}");
+        assert!((miss(&drifting) - 28.2).abs() < 0.5, "{drifting:?}");
     }
 }

@@ -143,6 +143,13 @@ impl SetBatch {
         self.spheres.clone().narrow(1, 0, 2)
     }
 
+    /// Each sphere's displacement over [`MOTION_SCALE_PX`], in the
+    /// network's frame (zero for one new to the view): the two values
+    /// after its distance, where rows carry motion. `[spheres, 2]`.
+    pub(crate) fn motions(&self) -> Tensor<2> {
+        self.spheres.clone().narrow(1, 3, 2)
+    }
+
     /// Sets in the batch.
     pub fn len(&self) -> usize {
         self.counts.dims()[0]
@@ -199,7 +206,7 @@ impl SphereSets {
                 let [dx, dy] = turn(offset);
                 let mut row = Vec::with_capacity(self.inputs.features());
                 row.extend([dx, dy, dx.hypot(dy)]);
-                if self.inputs == SphereInputs::Positions {
+                if !self.inputs.has_motion() {
                     return row;
                 }
                 // The displacement over MOTION_SCALE_PX, along the stage's axes.
