@@ -30,7 +30,7 @@ pub use config::{EnvConfig, ImageConfig, RewardComponent, RewardConfig};
 pub use env::{Env, EpisodeError, EpisodeOver, Layout, Outcome, RewardParts, StepResult, Target};
 pub use eval::{EvalSummary, evaluate};
 pub use observation::{Observation, ObservationBounds, ObservationError};
-pub use planner::{HORIZON as PLANNER_HORIZON, Planner};
+pub use planner::Planner;
 pub use policy::{Baseline, Greedy, Policy, UniformRandom};
 pub use render::{Frame, Pixel, Renderer, SizeMismatch};
 pub use rng::SplitMix64;

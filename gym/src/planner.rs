@@ -23,9 +23,8 @@ const HEADINGS: usize = 32;
 /// How long a manoeuvre holds its heading before heading for the target,
 /// steps (0: straight at the target).
 const HOLDS: [u32; 6] = [0, 1, 3, 6, 12, 24];
-/// Steps each plan is followed ahead: about as far as a sphere's random
-/// acceleration leaves its constant-velocity prediction within a margin.
-pub const HORIZON: u32 = 40;
+/// Steps each plan is followed ahead.
+const HORIZON: u32 = 40;
 /// Clearance kept beyond the collision radius at the next step, px.
 const MARGIN_PX: f64 = 5.0;
 /// Clearance added per step of prediction, px: a sphere's random

@@ -81,12 +81,6 @@ pub enum SphereInputs {
     /// which spheres lie ahead on the way to the target, and how they cross
     /// it, before anything is pooled.
     Goal,
-    /// Where it will be when the trap, driving straight at the target at
-    /// full speed, draws level with it, moving on at its displacement of
-    /// the last step (as it is, where it is new to the view); and that
-    /// position's distance. Motion folded into the position the planner
-    /// would predict, not given beside it.
-    Arrival,
 }
 
 impl SphereInputs {
@@ -96,13 +90,12 @@ impl SphereInputs {
             Self::Positions => "positions",
             Self::Motion => "motion",
             Self::Goal => "goal",
-            Self::Arrival => "arrival",
         }
     }
 
     /// The inputs called `name`.
     pub fn from_name(name: &str) -> Option<Self> {
-        [Self::Positions, Self::Motion, Self::Goal, Self::Arrival]
+        [Self::Positions, Self::Motion, Self::Goal]
             .into_iter()
             .find(|i| i.name() == name)
     }
@@ -110,7 +103,7 @@ impl SphereInputs {
     /// Features per sphere.
     pub fn features(self) -> usize {
         match self {
-            Self::Positions | Self::Arrival => 3,
+            Self::Positions => 3,
             Self::Motion => 6,
             Self::Goal => 10,
         }

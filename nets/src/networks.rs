@@ -184,6 +184,9 @@ impl Networks for PaperNetworks {
 pub struct SetNetworks {
     shape: SetShape,
     sets: SphereSets,
+    /// How far the trap moves in a step at full action, px: the critic
+    /// weighs an action against each sphere's motion in these units.
+    stage_speed_px: f32,
 }
 
 impl SetNetworks {
@@ -194,6 +197,7 @@ impl SetNetworks {
         Self {
             sets: SphereSets::new(&shape, fov_px),
             shape,
+            stage_speed_px: EnvConfig::default().stage_speed_px as f32,
         }
     }
 
@@ -201,8 +205,8 @@ impl SetNetworks {
     /// stage's speed.
     pub fn for_env(shape: SetShape, env: &EnvConfig) -> Self {
         Self {
-            sets: SphereSets::new(&shape, env.fov_px).on_stage(env.stage_speed_px as f32),
-            shape,
+            stage_speed_px: env.stage_speed_px as f32,
+            ..Self::new(shape, env.fov_px)
         }
     }
 
@@ -246,7 +250,7 @@ impl Networks for SetNetworks {
                 self.shape
                     .inputs
                     .has_motion()
-                    .then_some(MOTION_SCALE_PX / self.sets.stage_speed_px()),
+                    .then_some(MOTION_SCALE_PX / self.stage_speed_px),
             )
             .init(device)
     }

@@ -4,9 +4,7 @@
 //! its distance; with [`SphereInputs::Motion`], also its displacement since
 //! the previous step and whether it is new to the view; with
 //! [`SphereInputs::Goal`], also the offset and displacement in the frame
-//! that points at the target; with [`SphereInputs::Arrival`], the position
-//! is where the sphere will be when the trap draws level with it; in
-//! [`Frame::Goal`], every offset and
+//! that points at the target; in [`Frame::Goal`], every offset and
 //! displacement along and across the heading to the target. Packed with
 //! where each lands in its set, and each scene's heading. No rendering: the
 //! replay's centres go in as they are.
@@ -15,7 +13,7 @@ use crate::architecture::{Frame, SetShape, SphereInputs};
 use crate::goal_frame::to_goal;
 use burn::module::Module;
 use burn::tensor::{Device, Int, Tensor, TensorData};
-use tweezer_gym::{EnvConfig, Observation, PLANNER_HORIZON};
+use tweezer_gym::Observation;
 
 /// Px of displacement per unit of the motion features: a free sphere's
 /// largest speed per axis (`docs/spec.md` §2), so they span about ±1.
@@ -90,8 +88,6 @@ pub struct SphereSets {
     inputs: SphereInputs,
     /// The axes positions and displacements are given along.
     frame: Frame,
-    /// How far the trap moves in a step at full action, px.
-    stage_speed_px: f32,
 }
 
 /// A batch of sets: every sphere of the batch packed in one matrix (the
@@ -183,41 +179,12 @@ impl SphereSets {
             max_spheres: shape.max_spheres,
             inputs: shape.inputs,
             frame: shape.frame,
-            stage_speed_px: EnvConfig::default().stage_speed_px as f32,
         }
-    }
-
-    /// The same sets for a stage that moves `px` a step at full action.
-    pub fn on_stage(self, px: f32) -> Self {
-        Self {
-            stage_speed_px: px,
-            ..self
-        }
-    }
-
-    /// How far the trap moves in a step at full action, px.
-    pub fn stage_speed_px(&self) -> f32 {
-        self.stage_speed_px
-    }
-
-    /// Where a sphere at `offset` px from the trap, moving `velocity` px a
-    /// step, will be when the trap, driving at full speed along `heading`,
-    /// draws level with it: at once if it is behind, at most
-    /// [`PLANNER_HORIZON`] steps ahead.
-    fn at_arrival(&self, offset: [f32; 2], velocity: [f32; 2], [ux, uy]: [f32; 2]) -> [f32; 2] {
-        let ahead = offset[0] * ux + offset[1] * uy;
-        // A sphere moves at most a few px a step, the stage ten: positive.
-        let closing = (self.stage_speed_px - (velocity[0] * ux + velocity[1] * uy)).max(1e-3);
-        let steps = (ahead / closing).clamp(0.0, PLANNER_HORIZON as f32);
-        [
-            offset[0] + velocity[0] * steps,
-            offset[1] + velocity[1] * steps,
-        ]
     }
 
     /// The features of a scene's spheres, nearest first and at most
     /// `max_spheres`, one row of [`SphereInputs::features`] values each:
-    /// position (with arrival, the predicted one) and distance, then (with motion) the displacement over
+    /// position and distance, then (with motion) the displacement over
     /// [`MOTION_SCALE_PX`] and 1 for a sphere new to the view (whose
     /// displacement reads 0), then (with goal) the position and the
     /// displacement along and across the heading to the target.
@@ -232,12 +199,10 @@ impl SphereSets {
             .iter()
             .enumerate()
             .map(|(k, c)| {
-                let mut offset_px = [c[0] - self.trap_px[0], c[1] - self.trap_px[1]];
-                if self.inputs == SphereInputs::Arrival {
-                    let velocity = scene.displacement(k).unwrap_or([0.0; 2]);
-                    offset_px = self.at_arrival(offset_px, velocity, heading);
-                }
-                let offset = offset_px.map(|v| v / self.scale_px);
+                let offset = [
+                    (c[0] - self.trap_px[0]) / self.scale_px,
+                    (c[1] - self.trap_px[1]) / self.scale_px,
+                ];
                 let [dx, dy] = turn(offset);
                 let mut row = Vec::with_capacity(self.inputs.features());
                 row.extend([dx, dy, dx.hypot(dy)]);

@@ -233,44 +233,6 @@ fn motion_reads_each_displacement_and_flags_newcomers() {
 }
 
 #[test]
-fn arrival_moves_each_sphere_to_where_the_trap_draws_level_with_it() {
-    let shape = SetShape {
-        inputs: SphereInputs::Arrival,
-        ..SetShape::new(FOV)
-    };
-    let sets = SphereSets::new(&shape, FOV);
-    let at = |offset: [f32; 2]| {
-        let [x, y] = offset.map(|v| v / 160.0);
-        [x, y, x.hypot(y)]
-    };
-    // The trap at (160, 128). Ahead by 80 px and closing at 10 + 2 px a
-    // step: level after 6⅔ steps. Behind: where it is. New: standing still.
-    let centres = [[240.0, 148.0], [120.0, 138.0], [260.0, 98.0]];
-    let moves = [Some([-2.0, 1.0]), Some([1.0, 1.0]), None];
-    let rows = sets.features(Scene::new(&centres, &moves, [1.0, 0.0]));
-    let t = 80.0 / 12.0;
-    assert_close(&rows[0], &at([80.0 - 2.0 * t, 20.0 + t]), "ahead");
-    assert_close(&rows[1], &at([-40.0, 10.0]), "behind");
-    assert_close(&rows[2], &at([100.0, -30.0]), "new");
-    // Towards the target, whichever way it lies.
-    let down = sets.features(Scene::new(
-        &[[170.0, 208.0]],
-        &[Some([0.0, -2.0])],
-        [0.0, 0.4],
-    ));
-    assert_close(&down[0], &at([10.0, 80.0 - 2.0 * t]), "target below");
-    // On a slow stage no further than the planner's horizon.
-    let slow = sets.on_stage(2.0);
-    let far = slow.features(Scene::new(
-        &[[310.0, 128.0]],
-        &[Some([0.0, 2.0])],
-        [1.0, 0.0],
-    ));
-    let horizon = tweezer_gym::PLANNER_HORIZON as f32;
-    assert_close(&far[0], &at([150.0, 2.0 * horizon]), "far");
-}
-
-#[test]
 fn goal_inputs_turn_offset_and_motion_towards_the_target() {
     let shape = SetShape {
         inputs: SphereInputs::Goal,
