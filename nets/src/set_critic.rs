@@ -171,8 +171,10 @@ impl SetCritic {
         let seen = match self.per_sphere {
             None => Seen::Pooled(self.encoder.forward(set)),
             Some(_) => {
-                let passed =
-                    (self.approach.as_ref()).map(|_| Passed::of(&set, self.motion_in_actions));
+                let passed = self
+                    .approach
+                    .as_ref()
+                    .map(|_| Passed::of(&set, self.motion_in_actions));
                 let first = set.map_spheres(|spheres| self.encoder.first_layer(spheres));
                 Seen::PerSphere(first, passed)
             }
