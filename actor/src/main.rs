@@ -78,6 +78,11 @@ enum Command {
         /// Print one JSON object instead of a table.
         #[arg(long)]
         json: bool,
+        /// Let a snapshot's actor act alone, without the learner's critics
+        /// checking its actions (how TD3 explores, and how the Python
+        /// package acts).
+        #[arg(long)]
+        actor_alone: bool,
     },
     /// Print a snapshot's actions for observations given as JSON lines
     /// (`{"centres": [[x, y], ...], "vector": [x, y]}`), one
@@ -93,6 +98,11 @@ enum Command {
         /// Observations acted on at once (the policy's batch).
         #[arg(long, default_value_t = 64, value_parser = clap::value_parser!(u64).range(1..).map(|b| b as usize))]
         batch: usize,
+        /// Let a snapshot's actor act alone, without the learner's critics
+        /// checking its actions (how TD3 explores, and how the Python
+        /// package acts).
+        #[arg(long)]
+        actor_alone: bool,
     },
     /// Measure environment and renderer speed.
     Bench {
@@ -126,9 +136,15 @@ enum Command {
 
 /// The policy in snapshot file `path`. A snapshot of another environment
 /// (a CNN of another resolution) is refused naming the config that fits
-/// it: the `actor.toml` of the run whose `snapshots/` hold it.
-fn snapshot_policy(path: &Path, env: &EnvConfig) -> anyhow::Result<NetworkPolicy> {
+/// it: the `actor.toml` of the run whose `snapshots/` hold it. With
+/// `actor_alone`, the learner's critics do not check the actor.
+fn snapshot_policy(
+    path: &Path,
+    env: &EnvConfig,
+    actor_alone: bool,
+) -> anyhow::Result<NetworkPolicy> {
     match NetworkPolicy::from_file(path, env, &Device::flex()) {
+        Ok((policy, _)) if actor_alone => Ok(policy.actor_alone()),
         Ok((policy, _)) => Ok(policy),
         Err(
             e @ PolicyFileError::Snapshot {
@@ -157,14 +173,15 @@ fn snapshot_policy(path: &Path, env: &EnvConfig) -> anyhow::Result<NetworkPolicy
     }
 }
 
-/// A baseline's name, or the path of a snapshot file.
-fn policy_named(name: &str, env: &EnvConfig) -> anyhow::Result<Box<dyn Policy>> {
+/// A baseline's name, or the path of a snapshot file (see
+/// [`snapshot_policy`] for `actor_alone`).
+fn policy_named(name: &str, env: &EnvConfig, actor_alone: bool) -> anyhow::Result<Box<dyn Policy>> {
     if let Some(baseline) = Baseline::named(name) {
         return Ok(baseline.policy(env));
     }
     let path = Path::new(name);
     if path.is_file() {
-        return Ok(Box::new(snapshot_policy(path, env)?));
+        return Ok(Box::new(snapshot_policy(path, env, actor_alone)?));
     }
     if path.is_dir() {
         bail!(
@@ -293,8 +310,9 @@ fn run() -> anyhow::Result<()> {
             seeds,
             batch,
             json,
+            actor_alone,
         } => {
-            let mut policy = Timed::new(policy_named(&policy, &config.env)?);
+            let mut policy = Timed::new(policy_named(&policy, &config.env, actor_alone)?);
             let episodes = evaluate(&config.env, &mut policy, &seeds.0, batch)?;
             let summary = EvalSummary::of(&episodes);
             let per_observation_us = policy.per_observation_us();
@@ -321,8 +339,9 @@ fn run() -> anyhow::Result<()> {
             policy,
             observations,
             batch,
+            actor_alone,
         } => {
-            let mut policy = snapshot_policy(&policy, &config.env)?;
+            let mut policy = snapshot_policy(&policy, &config.env, actor_alone)?;
             let stdout = std::io::stdout().lock();
             match observations {
                 Some(path) => {
@@ -393,7 +412,7 @@ fn run() -> anyhow::Result<()> {
         }
         Command::Config => print!("{}", config.to_toml()),
         Command::Demo { policy, seeds, out } => {
-            let mut policy = policy_named(&policy, &config.env)?;
+            let mut policy = policy_named(&policy, &config.env, false)?;
             let pictures =
                 tweezer_figures::draw_episodes(&config.env, policy.as_mut(), &seeds.0, &out)?;
             for path in &pictures.written {

@@ -607,7 +607,9 @@ impl Actor {
             })?;
         tracing::info!(version = info.version, "loaded the learner's snapshot");
         self.report.snapshots_loaded.push(info.version);
-        self.policy = Some((info.version, policy));
+        // TD3 explores around its actor's action: the critics' check is for
+        // evaluation and the instrument.
+        self.policy = Some((info.version, policy.actor_alone()));
         Ok(())
     }
 }

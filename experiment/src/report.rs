@@ -17,7 +17,7 @@ use tweezer_gym::{Baseline, EnvConfig, EvalSummary, evaluate};
 use tweezer_learner::config::LearnerFile;
 use tweezer_learner::persistence::durable_write::write_atomic;
 use tweezer_learner::persistence::run_dir::RunDir;
-use tweezer_nets::NetworkPolicy;
+use tweezer_nets::{NetworkPolicy, without_critics};
 
 /// Episodes in Fig. 4's rolling mean (the paper's).
 pub const WINDOW: usize = 100;
@@ -112,8 +112,12 @@ impl Run {
         Ok(std::iter::once(best).chain(versions).collect())
     }
 
-    /// The policy to report: with `validation` seeds, the candidate with
-    /// the highest success rate (then return) on them; else `best`.
+    /// The policy to report: with `validation` seeds, the candidate whose
+    /// actor alone has the highest success rate (then return) on them
+    /// (checking by the critics costs 64 critic passes per step, too many
+    /// for every candidate), with its critics' check where that does better
+    /// on them too (young critics steer worse than their actor); else
+    /// `best`, as it is.
     fn choose(
         &self,
         validation: Option<&[u64]>,
@@ -129,6 +133,7 @@ impl Run {
             return Ok(Some(Chosen {
                 path: path.clone(),
                 how: "best rolling return".into(),
+                dropped_check: false,
                 policy,
                 version: info.version,
             }));
@@ -136,29 +141,52 @@ impl Run {
         let mut chosen: Option<(Chosen, EvalSummary)> = None;
         let mut seen = Vec::new();
         for path in &candidates {
-            let (mut policy, info) = NetworkPolicy::from_file(path, &self.env, device)?;
+            let (policy, info) = NetworkPolicy::from_file(path, &self.env, device)?;
             if seen.contains(&info.version) {
                 continue;
             }
             seen.push(info.version);
+            let mut policy = policy.actor_alone();
             let summary = EvalSummary::of(&evaluate(&self.env, &mut policy, validation, batch)?);
             tracing::info!(run = %self.dir.display(), version = info.version, success = summary.success_rate, "validated");
             if chosen.as_ref().is_none_or(|(_, b)| better(&summary, b)) {
                 let candidate = Chosen {
                     path: path.clone(),
                     how: String::new(),
+                    dropped_check: false,
                     policy,
                     version: info.version,
                 };
                 chosen = Some((candidate, summary));
             }
         }
-        let how = format!(
+        let mut how = format!(
             "best of {} on validation seeds {}",
             seen.len(),
             describe_seeds(validation)
         );
-        Ok(chosen.map(|(chosen, _)| Chosen { how, ..chosen }))
+        let Some((chosen, alone)) = chosen else {
+            return Ok(None);
+        };
+        let (mut policy, _) = NetworkPolicy::from_file(&chosen.path, &self.env, device)?;
+        if !policy.has_critics() {
+            return Ok(Some(Chosen { how, ..chosen }));
+        }
+        let checked = EvalSummary::of(&evaluate(&self.env, &mut policy, validation, batch)?);
+        let keep = better(&checked, &alone);
+        how += &format!(
+            ", critics' check {} there ({:.3} against {:.3} alone)",
+            if keep { "kept" } else { "dropped" },
+            checked.success_rate,
+            alone.success_rate
+        );
+        let policy = if keep { policy } else { policy.actor_alone() };
+        Ok(Some(Chosen {
+            how,
+            dropped_check: !keep,
+            policy,
+            ..chosen
+        }))
     }
 }
 
@@ -166,22 +194,33 @@ impl Run {
 struct Chosen {
     path: PathBuf,
     how: String,
+    /// Whether the snapshot's critics were found to check its actor worse
+    /// than it acts alone, and so dropped.
+    dropped_check: bool,
     policy: NetworkPolicy,
     version: u64,
 }
 
 /// Copies the reported snapshot to the run's `snapshots/chosen.safetensors`
 /// (atomically: a reader sees the old copy or the new one), so that the
-/// file the table quotes has a name that outlives the learner's pruning.
-fn keep_chosen(run: &Path, snapshot: &Path) -> anyhow::Result<PathBuf> {
-    let chosen = RunDir::new(run).chosen_snapshot();
-    let copy = || -> std::io::Result<()> {
-        let mut source = std::fs::File::open(snapshot)?;
-        write_atomic(&chosen, |w| std::io::copy(&mut source, w).map(drop))
+/// file the table quotes has a name that outlives the learner's pruning;
+/// without its critics where the report dropped their check, so that the
+/// microscope acts as reported.
+fn keep_chosen(run: &Path, chosen: &Chosen) -> anyhow::Result<PathBuf> {
+    let copy = RunDir::new(run).chosen_snapshot();
+    let failed = || {
+        format!(
+            "cannot copy {} to {}",
+            chosen.path.display(),
+            copy.display()
+        )
     };
-    copy()
-        .with_context(|| format!("cannot copy {} to {}", snapshot.display(), chosen.display()))?;
-    Ok(chosen)
+    let mut bytes = std::fs::read(&chosen.path).with_context(failed)?;
+    if chosen.dropped_check {
+        bytes = without_critics(&bytes).with_context(failed)?;
+    }
+    write_atomic(&copy, |w| w.write_all(&bytes)).with_context(failed)?;
+    Ok(copy)
 }
 
 /// The run's label from its train file, or the directory's name.
@@ -320,21 +359,32 @@ fn evaluate_runs(
             tracing::warn!(run = %run.dir.display(), "no best snapshot yet: not evaluated");
             continue;
         };
-        files.push(keep_chosen(&run.dir, &chosen.path)?);
-        let summary = EvalSummary::of(&evaluate(
-            &run.env,
-            &mut chosen.policy,
-            &options.seeds,
-            options.batch,
-        )?);
-        rows.push(EvalRow {
+        files.push(keep_chosen(&run.dir, &chosen)?);
+        let held_out = |policy: &mut NetworkPolicy| -> anyhow::Result<EvalSummary> {
+            let episodes = evaluate(&run.env, policy, &options.seeds, options.batch)?;
+            Ok(EvalSummary::of(&episodes))
+        };
+        let summary = held_out(&mut chosen.policy)?;
+        let row = |policy: String, summary: EvalSummary| EvalRow {
             label: run.label.clone(),
             run: run.dir.display().to_string(),
-            policy: format!("v{}", chosen.version),
-            chosen_by: chosen.how,
+            policy,
+            chosen_by: chosen.how.clone(),
             snapshot: chosen.path.display().to_string(),
             summary,
-        });
+        };
+        rows.push(row(format!("v{}", chosen.version), summary));
+        // The other way to act, to show what the critics' check adds.
+        let (other, _) = NetworkPolicy::from_file(&chosen.path, &run.env, &device)?;
+        if other.has_critics() {
+            let (mut other, name) = if chosen.dropped_check {
+                (other, "checked by its critics")
+            } else {
+                (other.actor_alone(), "actor alone")
+            };
+            let summary = held_out(&mut other)?;
+            rows.push(row(format!("v{} {name}", chosen.version), summary));
+        }
         if best.as_ref().is_none_or(|(_, _, b)| better(&summary, b)) {
             best = Some((k, chosen.policy, summary));
         }

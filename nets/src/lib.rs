@@ -17,6 +17,7 @@ mod approach;
 mod architecture;
 pub mod cpu_kernels;
 mod critic;
+pub mod critic_search;
 mod encoder;
 mod goal_frame;
 mod head;
@@ -43,5 +44,8 @@ pub use policy::{LoadError, NetworkPolicy, PolicyFileError};
 pub use set_actor::{SetActor, SetActorConfig};
 pub use set_critic::{SetCritic, SetCriticConfig, SetFeatures};
 pub use set_encoder::{SetEncoder, SetEncoderConfig};
-pub use snapshot::{SnapshotError, SnapshotInfo, decode, encode, file_sha256, read_info};
+pub use snapshot::{
+    CRITIC_PREFIXES, Decoded, SnapshotError, SnapshotInfo, decode, encode, encode_with_critics,
+    file_sha256, read_info, without_critics,
+};
 pub use spheres::{MOTION_SCALE_PX, Scene, SetBatch, SphereSets};

@@ -1,9 +1,12 @@
 //! A network as a `gym::Policy`, whichever architecture a snapshot holds:
 //! observations become one batch of the network's inputs (rendered images
-//! or sphere sets) and the actor runs once per call.
+//! or sphere sets) and the actor runs once per call. Where the snapshot
+//! carries the learner's critics, they check the actor's action
+//! ([`crate::critic_search`]).
 
+use crate::critic_search;
 use crate::networks::Networks;
-use crate::snapshot::{SnapshotError, SnapshotInfo, decode, read_info};
+use crate::snapshot::{Decoded, SnapshotError, SnapshotInfo, decode, read_info};
 use crate::spheres::Scene;
 use burn::tensor::{Device, Tensor, TensorData};
 use std::path::Path;
@@ -46,8 +49,17 @@ pub enum LoadError {
 }
 
 /// An actor network choosing actions for batches of observations, on a
-/// device without autodiff (BatchNorm uses its running statistics).
-pub struct NetworkPolicy(Box<dyn Policy + Send>);
+/// device without autodiff (BatchNorm uses its running statistics), with
+/// the learner's critics checking its choice where the snapshot has them.
+pub struct NetworkPolicy(Box<dyn Acting>);
+
+/// What [`NetworkPolicy`] needs of the networks it hides.
+trait Acting: Policy + Send {
+    /// Whether the critics check the actor's actions.
+    fn has_critics(&self) -> bool;
+    /// Drops the critics: the actor acts alone.
+    fn drop_critics(&mut self);
+}
 
 impl std::fmt::Debug for NetworkPolicy {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
@@ -55,21 +67,46 @@ impl std::fmt::Debug for NetworkPolicy {
     }
 }
 
-/// An actor of `N` and what makes its inputs.
+/// An actor of `N`, the critics that check it, and what makes its inputs.
 struct Inference<N: Networks> {
     networks: N,
     actor: N::Actor,
+    critics: Option<[N::Critic; 2]>,
     device: Device,
 }
 
 impl NetworkPolicy {
-    /// A policy from an actor of `networks`.
+    /// A policy from an actor of `networks`, acting alone.
     pub fn new<N: Networks>(networks: N, actor: N::Actor, device: Device) -> Self {
+        Self::checked(networks, actor, None, device)
+    }
+
+    /// A policy from an actor of `networks` whose actions `critics`, where
+    /// given, check.
+    pub fn checked<N: Networks>(
+        networks: N,
+        actor: N::Actor,
+        critics: Option<[N::Critic; 2]>,
+        device: Device,
+    ) -> Self {
         Self(Box::new(Inference {
             networks,
             actor,
+            critics,
             device,
         }))
+    }
+
+    /// This policy with the actor acting alone, as TD3 explores and as the
+    /// Python package acts.
+    pub fn actor_alone(mut self) -> Self {
+        self.0.drop_critics();
+        self
+    }
+
+    /// Whether the learner's critics check the actor's actions.
+    pub fn has_critics(&self) -> bool {
+        self.0.has_critics()
     }
 
     /// Loads a snapshot of either architecture for the observations of
@@ -82,8 +119,13 @@ impl NetworkPolicy {
     ) -> Result<(Self, SnapshotInfo), LoadError> {
         let networks = read_info(bytes)?.architecture.networks(env)?;
         Ok(crate::with_networks!(networks, |networks| {
-            let (actor, info) = decode(bytes, &networks, device)?;
-            (NetworkPolicy::new(networks, actor, device.clone()), info)
+            let Decoded {
+                actor,
+                critics,
+                info,
+            } = decode(bytes, &networks, device)?;
+            let policy = NetworkPolicy::checked(networks, actor, critics, device.clone());
+            (policy, info)
         }))
     }
 
@@ -114,6 +156,16 @@ impl Policy for NetworkPolicy {
     }
 }
 
+impl<N: Networks> Acting for Inference<N> {
+    fn has_critics(&self) -> bool {
+        self.critics.is_some()
+    }
+
+    fn drop_critics(&mut self) {
+        self.critics = None;
+    }
+}
+
 impl<N: Networks> Policy for Inference<N> {
     /// A network that outputs NaN (broken weights) stands still rather than
     /// driving the stage anywhere.
@@ -130,8 +182,13 @@ impl<N: Networks> Policy for Inference<N> {
             .into_data()
             .try_to_vec()
             .expect("the actor outputs f32");
-        for (action, xy) in actions.iter_mut().zip(out.chunks_exact(2)) {
-            *action = Action::clipped(xy[0], xy[1]).unwrap_or(Action::ZERO);
+        let mut chosen: Vec<[f32; 2]> = out.chunks_exact(2).map(|xy| [xy[0], xy[1]]).collect();
+        if let Some(critics) = &self.critics {
+            chosen =
+                critic_search::choose(&self.networks, critics, observations, &chosen, &self.device);
+        }
+        for (action, [x, y]) in actions.iter_mut().zip(chosen) {
+            *action = Action::clipped(x, y).unwrap_or(Action::ZERO);
         }
     }
 }

@@ -2,6 +2,9 @@
 //! a safetensors file, which any safetensors reader opens, with metadata
 //! naming the architecture and its hyper-parameters, the version and
 //! training step, and a SHA-256 of the weights that loading verifies.
+//! The learner adds its two critics under [`CRITIC_PREFIXES`], so that a
+//! policy can check the actor's action against them
+//! ([`crate::critic_search`]).
 
 use crate::architecture::{Architecture, ArchitectureError};
 use crate::networks::Networks;
@@ -76,11 +79,18 @@ impl SnapshotError {
     }
 }
 
+/// Where a snapshot keeps the learner's two critics: their tensors' names
+/// start with these (`critic1.head.out.weight`).
+pub const CRITIC_PREFIXES: [&str; 2] = ["critic1", "critic2"];
+
+/// Float tensors by name: shape and data.
+type Tensors = BTreeMap<String, (Vec<usize>, Vec<f32>)>;
+
 /// Every float tensor of a module by its path (`encoder.conv1.weight`).
 #[derive(Default)]
 struct Named {
     path: Vec<String>,
-    tensors: BTreeMap<String, (Vec<usize>, Vec<f32>)>,
+    tensors: Tensors,
 }
 
 impl ModuleVisitor for Named {
@@ -104,7 +114,7 @@ impl ModuleVisitor for Named {
     }
 }
 
-fn digest(tensors: &BTreeMap<String, (Vec<usize>, Vec<f32>)>) -> String {
+fn digest(tensors: &Tensors) -> String {
     let mut hash = Sha256::new();
     for (name, (shape, data)) in tensors {
         hash.update(name.as_bytes());
@@ -122,6 +132,26 @@ fn digest(tensors: &BTreeMap<String, (Vec<usize>, Vec<f32>)>) -> String {
 pub fn encode<M: Module>(actor: &M, info: &SnapshotInfo) -> Vec<u8> {
     let mut named = Named::default();
     actor.visit(&mut named);
+    serialise(named, info)
+}
+
+/// Writes `actor`, the learner's two `critics` and `info` as safetensors
+/// bytes.
+pub fn encode_with_critics<M: Module, C: Module>(
+    actor: &M,
+    critics: &[C; 2],
+    info: &SnapshotInfo,
+) -> Vec<u8> {
+    let mut named = Named::default();
+    actor.visit(&mut named);
+    for (critic, prefix) in critics.iter().zip(CRITIC_PREFIXES) {
+        named.path = vec![prefix.to_string()];
+        critic.visit(&mut named);
+    }
+    serialise(named, info)
+}
+
+fn serialise(named: Named, info: &SnapshotInfo) -> Vec<u8> {
     let mut metadata = HashMap::new();
     metadata.insert("format".to_string(), "tweezer-snapshot".to_string());
     metadata.insert(
@@ -188,7 +218,7 @@ pub fn read_info(bytes: &[u8]) -> Result<SnapshotInfo, SnapshotError> {
 /// the first problem.
 struct Load<'a> {
     path: Vec<String>,
-    tensors: &'a BTreeMap<String, (Vec<usize>, Vec<f32>)>,
+    tensors: &'a Tensors,
     device: Device,
     loaded: usize,
     error: Option<SnapshotError>,
@@ -235,6 +265,26 @@ impl ModuleMapper for Load<'_> {
     }
 }
 
+/// A snapshot loaded: the actor, the learner's critics where the file
+/// holds them, and what the file says about itself.
+pub struct Decoded<N: Networks> {
+    /// The policy network.
+    pub actor: N::Actor,
+    /// The learner's two critics, when the snapshot carries them.
+    pub critics: Option<[N::Critic; 2]>,
+    /// Architecture, version and training step.
+    pub info: SnapshotInfo,
+}
+
+impl<N: Networks> std::fmt::Debug for Decoded<N> {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Decoded")
+            .field("info", &self.info)
+            .field("critics", &self.critics.is_some())
+            .finish_non_exhaustive()
+    }
+}
+
 /// Loads a snapshot of the architecture `networks` builds onto `device`,
 /// refusing any other architecture or hyper-parameters and corrupted
 /// weights.
@@ -242,13 +292,89 @@ pub fn decode<N: Networks>(
     bytes: &[u8],
     networks: &N,
     device: &Device,
-) -> Result<(N::Actor, SnapshotInfo), SnapshotError> {
+) -> Result<Decoded<N>, SnapshotError> {
     let metadata = metadata(bytes)?;
     let info = info_of(&metadata)?;
     let expected = networks.architecture();
     if info.architecture != expected {
         return Err(SnapshotError::mismatch(&expected, &info.architecture));
     }
+    let tensors = verified_tensors(bytes, &metadata)?;
+    let has_critics = tensors.keys().any(|name| of_critic(name));
+    let mut loaded = 0;
+    let actor = load(networks.actor(device), &[], &tensors, device, &mut loaded)?;
+    let critics = if has_critics {
+        let [first, second] = CRITIC_PREFIXES;
+        Some([
+            load(
+                networks.critic(device),
+                &[first],
+                &tensors,
+                device,
+                &mut loaded,
+            )?,
+            load(
+                networks.critic(device),
+                &[second],
+                &tensors,
+                device,
+                &mut loaded,
+            )?,
+        ])
+    } else {
+        None
+    };
+    if loaded != tensors.len() {
+        let mut known = Named::default();
+        actor.visit(&mut known);
+        for (critic, prefix) in critics.iter().flatten().zip(CRITIC_PREFIXES) {
+            known.path = vec![prefix.to_string()];
+            critic.visit(&mut known);
+        }
+        let extra = tensors
+            .keys()
+            .find(|k| !known.tensors.contains_key(*k))
+            .cloned()
+            .unwrap_or_default();
+        return Err(SnapshotError::Tensor {
+            name: extra,
+            reason: "not part of the network".into(),
+        });
+    }
+    Ok(Decoded {
+        actor,
+        critics,
+        info,
+    })
+}
+
+/// The snapshot `bytes`, verified, without the learner's critics: its
+/// actor alone, with the checksum of what remains.
+pub fn without_critics(bytes: &[u8]) -> Result<Vec<u8>, SnapshotError> {
+    let metadata = metadata(bytes)?;
+    let info = info_of(&metadata)?;
+    let tensors = verified_tensors(bytes, &metadata)?
+        .into_iter()
+        .filter(|(name, _)| !of_critic(name))
+        .collect();
+    let named = Named {
+        path: Vec::new(),
+        tensors,
+    };
+    Ok(serialise(named, &info))
+}
+
+/// Whether tensor `name` is one of the critics'.
+fn of_critic(name: &str) -> bool {
+    let module = name.split('.').next();
+    CRITIC_PREFIXES.iter().any(|p| module == Some(*p))
+}
+
+/// Every tensor of the file by name, once their checksum is verified.
+fn verified_tensors(
+    bytes: &[u8],
+    metadata: &HashMap<String, String>,
+) -> Result<Tensors, SnapshotError> {
     let file = SafeTensors::deserialize(bytes).map_err(|e| SnapshotError::Format(e.to_string()))?;
     let mut tensors = BTreeMap::new();
     for (name, view) in file.tensors() {
@@ -265,37 +391,36 @@ pub fn decode<N: Networks>(
             .collect();
         tensors.insert(name, (view.shape().to_vec(), data));
     }
-    let expected: String = field(&metadata, "weights_sha256")?;
+    let expected: String = field(metadata, "weights_sha256")?;
     let computed = digest(&tensors);
     if computed != expected {
         return Err(SnapshotError::Checksum { expected, computed });
     }
-    let fresh = networks.actor(device);
+    Ok(tensors)
+}
+
+/// `fresh` with each parameter replaced by the tensor of the same path
+/// under `prefix`; counts the tensors used into `loaded`.
+fn load<M: Module>(
+    fresh: M,
+    prefix: &[&str],
+    tensors: &Tensors,
+    device: &Device,
+    loaded: &mut usize,
+) -> Result<M, SnapshotError> {
     let mut load = Load {
-        path: Vec::new(),
-        tensors: &tensors,
+        path: prefix.iter().map(|p| p.to_string()).collect(),
+        tensors,
         device: device.clone(),
         loaded: 0,
         error: None,
     };
-    let actor = fresh.map(&mut load);
-    if let Some(e) = load.error {
-        return Err(e);
+    let module = fresh.map(&mut load);
+    *loaded += load.loaded;
+    match load.error {
+        Some(e) => Err(e),
+        None => Ok(module),
     }
-    if load.loaded != tensors.len() {
-        let mut known = Named::default();
-        actor.visit(&mut known);
-        let extra = tensors
-            .keys()
-            .find(|k| !known.tensors.contains_key(*k))
-            .cloned()
-            .unwrap_or_default();
-        return Err(SnapshotError::Tensor {
-            name: extra,
-            reason: "not part of the network".into(),
-        });
-    }
-    Ok((actor, info))
 }
 
 /// SHA-256 of a whole snapshot file, lowercase hex (what the learner

@@ -6,7 +6,8 @@ use std::collections::HashMap;
 use tweezer_gym::{EnvConfig, ImageConfig, Observation, Policy, Renderer};
 use tweezer_nets::{
     ActionJoin, Architecture, Frame, NetworkPolicy, Networks, PaperNetworks, Pooling, SetNetworks,
-    SetShape, SnapshotError, SnapshotInfo, SphereInputs, decode, encode, file_sha256, read_info,
+    SetShape, SnapshotError, SnapshotInfo, SphereInputs, critic_search, decode, encode,
+    encode_with_critics, file_sha256, read_info, without_critics,
 };
 
 fn env(width: u32, height: u32) -> EnvConfig {
@@ -79,8 +80,10 @@ fn a_paper_snapshot_round_trips_to_the_same_policy() {
         width: 80,
     });
     assert_eq!(read_info(&bytes).unwrap(), expected);
-    let (loaded, meta) = decode(&bytes, &networks, &device).unwrap();
-    assert_eq!(meta, expected);
+    let decoded = decode(&bytes, &networks, &device).unwrap();
+    assert_eq!(decoded.info, expected);
+    assert!(decoded.critics.is_none());
+    let loaded = decoded.actor;
     let image = Tensor::<4>::random([3, 1, 64, 80], Distribution::Bernoulli(0.1), &device);
     let vector = Tensor::<2>::random([3, 2], Distribution::Uniform(-1.0, 1.0), &device);
     let out = |a: &tweezer_nets::Actor| -> Vec<f32> {
@@ -115,6 +118,115 @@ fn a_set_snapshot_round_trips_with_its_hyper_parameters() {
     let (mut loaded, meta) = NetworkPolicy::from_snapshot(&bytes, &env(7, 5), &device).unwrap();
     assert_eq!(meta.architecture, Architecture::Set(shape));
     assert_eq!(actions(&mut direct), actions(&mut loaded));
+}
+
+/// Each observation's smaller critic value of `action`.
+fn value(
+    networks: &SetNetworks,
+    critics: &[tweezer_nets::SetCritic; 2],
+    observations: &[&Observation],
+    action: &[[f32; 2]],
+    device: &Device,
+) -> Vec<f32> {
+    let n = observations.len();
+    let input = networks.input(
+        observations.iter().map(|o| tweezer_nets::Scene::of(o)),
+        device,
+    );
+    let vectors: Vec<f32> = observations.iter().flat_map(|o| o.vector).collect();
+    let tensor =
+        |v: Vec<f32>| Tensor::<2>::from_data(burn::tensor::TensorData::new(v, [n, 2]), device);
+    let (vector, action) = (
+        tensor(vectors),
+        tensor(action.iter().flatten().copied().collect()),
+    );
+    let [q1, q2] = critics.each_ref().map(|c| {
+        let q = SetNetworks::value(
+            c,
+            SetNetworks::features(c, input.clone()),
+            vector.clone(),
+            action.clone(),
+        );
+        q.into_data().try_to_vec::<f32>().unwrap()
+    });
+    q1.iter().zip(&q2).map(|(a, b)| a.min(*b)).collect()
+}
+
+#[test]
+fn a_snapshot_with_the_critics_lets_them_check_the_actor() {
+    let device = Device::flex();
+    let networks = set(SetShape::new([1280, 1024]));
+    let actor = networks.actor(&device);
+    let critics = [networks.critic(&device), networks.critic(&device)];
+    let bytes = encode_with_critics(&actor, &critics, &info(networks.architecture()));
+    let decoded = decode(&bytes, &networks, &device).unwrap();
+    let loaded = decoded.critics.expect("the critics travel with the actor");
+
+    let obs = observations();
+    let refs: Vec<&Observation> = obs.iter().collect();
+    let mut alone = NetworkPolicy::new(networks.clone(), actor, device.clone());
+    let own = actions(&mut alone);
+    // The critics come back as they went.
+    for k in 0..2 {
+        let q = |c: &[tweezer_nets::SetCritic; 2]| {
+            value(
+                &networks,
+                &[c[k].clone(), c[k].clone()],
+                &refs,
+                &own,
+                &device,
+            )
+        };
+        assert_eq!(q(&critics), q(&loaded));
+    }
+
+    let (mut checked, _) =
+        NetworkPolicy::from_snapshot(&bytes, &EnvConfig::default(), &device).unwrap();
+    assert!(checked.has_critics());
+    let chosen = actions(&mut checked);
+    assert_eq!(
+        chosen,
+        critic_search::choose(&networks, &critics, &refs, &own, &device)
+    );
+    // The choice is among the candidates around the actor's action, and
+    // the critics value it at least as highly as the actor's own.
+    for (i, action) in chosen.iter().enumerate() {
+        assert!(critic_search::candidates(own[i]).contains(action));
+    }
+    let (mine, theirs) = (
+        value(&networks, &critics, &refs, &own, &device),
+        value(&networks, &critics, &refs, &chosen, &device),
+    );
+    assert!(
+        mine.iter().zip(&theirs).all(|(m, t)| t >= m),
+        "{mine:?} {theirs:?}"
+    );
+    // Untrained critics disagree with an untrained actor somewhere.
+    assert_ne!(chosen, own);
+
+    // Without them, the actor acts alone, as it did before loading.
+    let alone = checked.actor_alone();
+    assert!(!alone.has_critics());
+    assert_eq!(actions(&mut { alone }), own);
+
+    // Stripped of its critics, the file is its actor alone, verified.
+    let stripped = without_critics(&bytes).unwrap();
+    let (mut stripped, meta) =
+        NetworkPolicy::from_snapshot(&stripped, &EnvConfig::default(), &device).unwrap();
+    assert!(!stripped.has_critics());
+    assert_eq!(meta, info(networks.architecture()));
+    assert_eq!(actions(&mut stripped), own);
+
+    // A critic's weight altered is refused like the actor's.
+    let file = safetensors::SafeTensors::deserialize(&bytes).unwrap();
+    let weight = file.tensor("critic2.head.out.weight").unwrap().data();
+    let at = weight.as_ptr() as usize - bytes.as_ptr() as usize;
+    let mut corrupt = bytes.clone();
+    corrupt[at + 1] ^= 0x40;
+    let err = decode(&corrupt, &networks, &device).unwrap_err();
+    assert!(matches!(err, SnapshotError::Checksum { .. }), "{err}");
+    let err = without_critics(&corrupt).unwrap_err();
+    assert!(matches!(err, SnapshotError::Checksum { .. }), "{err}");
 }
 
 #[test]

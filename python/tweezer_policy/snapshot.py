@@ -24,6 +24,9 @@ INPUTS = ("positions", "motion", "goal")
 # use the stage's.
 FRAMES = ("stage", "goal")
 MAX_SIZE = 1 << 16
+# Where a snapshot keeps the learner's two critics (`critic1.head.out.weight`).
+# This package acts with the actor alone, as `actor act --actor-alone` does.
+CRITIC_PREFIXES = ("critic1.", "critic2.")
 
 
 class SnapshotError(ValueError):
@@ -42,8 +45,9 @@ class Snapshot:
     version: int
     training_step: int
     tensors: dict = field(repr=False)
-    """Weights by Burn's module path (`encoder.fc1.weight`), float32. Linear
-    weights are stored [in, out]: y = x @ W + b."""
+    """The actor's weights by Burn's module path (`encoder.fc1.weight`),
+    float32; the critics' are left out. Linear weights are stored [in, out]:
+    y = x @ W + b."""
 
 
 def weights_sha256(tensors):
@@ -113,6 +117,7 @@ def read(path):
         raise SnapshotError(
             f"snapshot weights fail their checksum (expected {expected}, computed {computed})"
         )
+    tensors = {k: v for k, v in tensors.items() if not k.startswith(CRITIC_PREFIXES)}
     return Snapshot(
         architecture=name,
         fields=fields,

@@ -380,10 +380,21 @@ fn mean_return(policy: &mut dyn Policy, env: &EnvConfig) -> f64 {
     EvalSummary::of(&episodes).mean_return
 }
 
+/// The actor a published snapshot holds, acting alone as the actors
+/// explore with it. A set network's snapshot carries the critics that
+/// check it, a CNN's none.
 fn network(snapshot: &[u8], env: &EnvConfig) -> NetworkPolicy {
-    NetworkPolicy::from_snapshot(snapshot, env, &burn::tensor::Device::flex())
-        .unwrap()
-        .0
+    let (policy, info) =
+        NetworkPolicy::from_snapshot(snapshot, env, &burn::tensor::Device::flex()).unwrap();
+    let set = matches!(info.architecture, tweezer_nets::Architecture::Set(_));
+    assert_eq!(
+        policy.has_critics(),
+        set,
+        "snapshot v{} of {:?}",
+        info.version,
+        info.architecture
+    );
+    policy.actor_alone()
 }
 
 fn checkpoints(run: &Path) -> Vec<PathBuf> {

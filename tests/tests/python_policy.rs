@@ -3,7 +3,8 @@
 //! architectures trained by a short real run (a learner and an actor over
 //! gRPC; the set network reads motion, also turned towards the goal, or
 //! reads and acts in the goal frame), and its
-//! actions for unseen observations match the Rust policy's (`actor act`) to
+//! actions for unseen observations match the Rust policy's actor alone
+//! (`actor act --actor-alone`) to
 //! 1e-4; it refuses a snapshot whose weights were altered.
 
 use std::path::{Path, PathBuf};
@@ -151,6 +152,7 @@ fn python_loads_trained_snapshots_of_both_architectures_and_acts_as_rust_does() 
                     "--config",
                     &env,
                     "act",
+                    "--actor-alone",
                     "--policy",
                     snapshot,
                     "--observations",

@@ -349,3 +349,47 @@ fn updates_end_a_run_at_exactly_that_many() {
         "{versions:?}"
     );
 }
+
+/// A set network's run is reported as it acts, its critics checking its
+/// actor where that did better on the validation seeds, and the other way
+/// beside it; the microscope's copy holds the critics only where their
+/// check was kept.
+#[test]
+fn a_set_run_is_reported_with_and_without_its_critics_check() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("run");
+    let train = write(
+        &dir.path().join("train.toml"),
+        &tiny_train_file(
+            "[learner.network]\nkind = \"set\"\n\
+             [train]\nminutes = 30\neval_seeds = \"0..4\"\nvalidation_seeds = \"10..14\"\n\
+             picture_seeds = \"0\"\n",
+        ),
+    );
+    let output = output_of(experiment_train(&train, &out).args(["--updates", "120"]));
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert!(output.status.success(), "{stderr}");
+    let outcome = report(&String::from_utf8(output.stdout).unwrap());
+    let rows = outcome["report"]["rows"].as_array().unwrap();
+    let policies: Vec<&str> = rows.iter().map(|r| r["policy"].as_str().unwrap()).collect();
+    let how = rows[0]["chosen_by"].as_str().unwrap();
+    let kept = how.contains("critics' check kept");
+    assert!(kept || how.contains("critics' check dropped"), "{how}");
+    let other = match kept {
+        true => format!("{} actor alone", policies[0]),
+        false => format!("{} checked by its critics", policies[0]),
+    };
+    assert_eq!(
+        policies[1..],
+        [other.as_str(), "greedy", "planner"],
+        "{outcome}"
+    );
+    let chosen = std::fs::read(out.join("snapshots/chosen.safetensors")).unwrap();
+    // The tiny environment keeps the default field of view, all a set
+    // network needs of it.
+    let env = tweezer_gym::EnvConfig::default();
+    let (policy, _) =
+        tweezer_nets::NetworkPolicy::from_snapshot(&chosen, &env, &burn::tensor::Device::flex())
+            .unwrap();
+    assert_eq!(policy.has_critics(), kept, "{how}");
+}

@@ -324,6 +324,12 @@ impl<N: Networks> Td3<N> {
         })
     }
 
+    /// The two critics, for inference (no autodiff): a snapshot carries
+    /// them to check the policy's actions.
+    pub fn critics(&self) -> [N::Critic; 2] {
+        [self.critics.q1.valid(), self.critics.q2.valid()]
+    }
+
     /// The current policy, for inference (no autodiff).
     pub fn policy(&self) -> N::Actor {
         self.actor.valid()

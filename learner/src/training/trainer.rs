@@ -18,7 +18,9 @@ use std::path::PathBuf;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 use tweezer_gym::SplitMix64;
-use tweezer_nets::{Networks, SnapshotError, SnapshotInfo, encode, with_networks};
+use tweezer_nets::{
+    Architecture, Networks, SnapshotError, SnapshotInfo, encode, encode_with_critics, with_networks,
+};
 
 /// Sums of update statistics between two metrics lines.
 #[derive(Default)]
@@ -417,7 +419,8 @@ impl<N: Networks> Trainer<N> {
         }
     }
 
-    /// Publishes the current policy as the next snapshot version.
+    /// Publishes the current policy as the next snapshot version, a set
+    /// network's with the critics that check it.
     fn publish(&mut self) -> anyhow::Result<()> {
         let _span = tracing::info_span!("publish").entered();
         let rolling = self.shared.episodes().rolling();
@@ -430,7 +433,14 @@ impl<N: Networks> Trainer<N> {
             version: snapshots.next_version(),
             training_step: self.td3.updates(),
         };
-        let bytes = encode(&self.td3.policy(), &info);
+        // The set network's critics are small and cheap to ask; the CNN's
+        // are as large as its actor and would render 64 images a step.
+        let bytes = match info.architecture {
+            Architecture::Set(_) => {
+                encode_with_critics(&self.td3.policy(), &self.td3.critics(), &info)
+            }
+            Architecture::Paper { .. } => encode(&self.td3.policy(), &info),
+        };
         let (published, best) = snapshots.publish(bytes, rolling_return)?;
         drop(snapshots);
         tracing::info!(
