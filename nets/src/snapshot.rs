@@ -130,9 +130,7 @@ fn digest(tensors: &Tensors) -> String {
 
 /// Writes `actor` and `info` as safetensors bytes.
 pub fn encode<M: Module>(actor: &M, info: &SnapshotInfo) -> Vec<u8> {
-    let mut named = Named::default();
-    actor.visit(&mut named);
-    serialise(named, info)
+    serialise(named::<M, M>(actor, &[]), info)
 }
 
 /// Writes `actor`, the learner's two `critics` and `info` as safetensors
@@ -142,13 +140,20 @@ pub fn encode_with_critics<M: Module, C: Module>(
     critics: &[C; 2],
     info: &SnapshotInfo,
 ) -> Vec<u8> {
+    serialise(named(actor, critics), info)
+}
+
+/// Every tensor of `actor` by its path, and of each of `critics` by its
+/// path under its prefix in [`CRITIC_PREFIXES`].
+fn named<M: Module, C: Module>(actor: &M, critics: &[C]) -> Named {
     let mut named = Named::default();
     actor.visit(&mut named);
     for (critic, prefix) in critics.iter().zip(CRITIC_PREFIXES) {
         named.path = vec![prefix.to_string()];
         critic.visit(&mut named);
     }
-    serialise(named, info)
+    named.path.clear();
+    named
 }
 
 fn serialise(named: Named, info: &SnapshotInfo) -> Vec<u8> {
@@ -304,33 +309,21 @@ pub fn decode<N: Networks>(
     let mut loaded = 0;
     let actor = load(networks.actor(device), &[], &tensors, device, &mut loaded)?;
     let critics = if has_critics {
-        let [first, second] = CRITIC_PREFIXES;
-        Some([
+        let [q1, q2] = CRITIC_PREFIXES.map(|prefix| {
             load(
                 networks.critic(device),
-                &[first],
+                &[prefix],
                 &tensors,
                 device,
                 &mut loaded,
-            )?,
-            load(
-                networks.critic(device),
-                &[second],
-                &tensors,
-                device,
-                &mut loaded,
-            )?,
-        ])
+            )
+        });
+        Some([q1?, q2?])
     } else {
         None
     };
     if loaded != tensors.len() {
-        let mut known = Named::default();
-        actor.visit(&mut known);
-        for (critic, prefix) in critics.iter().flatten().zip(CRITIC_PREFIXES) {
-            known.path = vec![prefix.to_string()];
-            critic.visit(&mut known);
-        }
+        let known = named(&actor, critics.as_ref().map_or(&[][..], |c| &c[..]));
         let extra = tensors
             .keys()
             .find(|k| !known.tensors.contains_key(*k))
