@@ -195,10 +195,11 @@ fn acting(
                 width: width as usize,
             }
         }
-        // The lean preset's: in the goal frame (the critic's action join
-        // does not touch the actor).
+        // The lean preset's: in the goal frame, with motion (the critic's
+        // action join does not touch the actor).
         None => Architecture::Set(SetShape {
             frame: tweezer_nets::Frame::Goal,
+            inputs: tweezer_nets::SphereInputs::Motion,
             ..SetShape::new(config.fov_px)
         }),
     };
