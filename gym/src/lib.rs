@@ -29,7 +29,7 @@ pub use action::{Action, ActionError};
 pub use config::{EnvConfig, ImageConfig, RewardComponent, RewardConfig};
 pub use env::{Env, EpisodeError, EpisodeOver, Layout, Outcome, RewardParts, StepResult, Target};
 pub use eval::{EvalSummary, evaluate};
-pub use observation::{Observation, ObservationBounds, ObservationError};
+pub use observation::{Observation, ObservationBounds, ObservationError, displacement_at};
 pub use planner::Planner;
 pub use policy::{Baseline, Greedy, Policy, UniformRandom};
 pub use render::{Frame, Pixel, Renderer, SizeMismatch};

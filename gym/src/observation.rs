@@ -24,6 +24,13 @@ pub struct Observation {
     pub vector: [f32; 2],
 }
 
+/// Sphere `index`'s displacement in `displacements`, as an observation
+/// lists them: `None` for a sphere new to the view, and for every sphere
+/// where the list is empty (no motion known).
+pub fn displacement_at(displacements: &[Option<[f32; 2]>], index: usize) -> Option<[f32; 2]> {
+    displacements.get(index).copied().flatten()
+}
+
 /// Limits a well-formed observation stays within.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct ObservationBounds {
@@ -132,7 +139,7 @@ impl Observation {
     /// Sphere `index`'s displacement since the previous step, px, if it was
     /// matched.
     pub fn displacement(&self, index: usize) -> Option<[f32; 2]> {
-        self.displacements.get(index).copied().flatten()
+        displacement_at(&self.displacements, index)
     }
 
     /// Checks that every value is finite and within `bounds`.

@@ -71,7 +71,7 @@ impl<'a> Scene<'a> {
     }
 
     fn displacement(&self, index: usize) -> Option<[f32; 2]> {
-        self.displacements.get(index).copied().flatten()
+        tweezer_gym::displacement_at(self.displacements, index)
     }
 }
 
@@ -189,7 +189,11 @@ impl SphereSets {
     /// displacement reads 0), then (with goal) the position and the
     /// displacement along and across the heading to the target.
     pub fn features(&self, scene: Scene) -> Vec<Vec<f32>> {
-        let heading = scene.heading();
+        self.rows(scene, scene.heading())
+    }
+
+    /// [`Self::features`] of `scene`, whose heading is `heading`.
+    fn rows(&self, scene: Scene, heading: [f32; 2]) -> Vec<Vec<f32>> {
         let turn = |v: [f32; 2]| match self.frame {
             Frame::Stage => v,
             Frame::Goal => to_goal(v, heading),
@@ -253,8 +257,12 @@ impl SphereSets {
         device: &Device,
     ) -> SetBatch {
         let per_sphere = self.inputs.features();
-        let (sets, headings): (Vec<_>, Vec<_>) =
-            scenes.map(|s| (self.features(s), s.heading())).unzip();
+        let (sets, headings): (Vec<_>, Vec<_>) = scenes
+            .map(|s| {
+                let heading = s.heading();
+                (self.rows(s, heading), heading)
+            })
+            .unzip();
         let width = sets.iter().map(Vec::len).max().unwrap_or(0).max(min_len);
         let packed = sets.iter().map(Vec::len).sum::<usize>().max(1);
         let mut features = Vec::with_capacity(packed * per_sphere);
