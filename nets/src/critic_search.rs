@@ -10,6 +10,21 @@ use crate::spheres::Scene;
 use burn::tensor::{Device, Tensor, TensorData};
 use tweezer_gym::Observation;
 
+/// How much more reward than the actor's own action the critics must
+/// promise a candidate before the policy takes it instead: about five
+/// steps' reward on the ideal straight run. The largest of 64 noisy values
+/// is biased upward, most where the critics know little, so without a
+/// margin the check trades the actor's straight run for detours the
+/// critics only seem to prefer (`docs/training.md`, "The check's margin").
+pub const MARGIN_REWARD: f64 = 50.0;
+
+/// [`MARGIN_REWARD`] in the units of critics whose values are rewards
+/// times `reward_scale`; none where the scale is unknown (snapshots from
+/// before it was recorded were measured without).
+pub fn margin(reward_scale: Option<f64>) -> f32 {
+    reward_scale.map_or(0.0, |scale| (MARGIN_REWARD * scale) as f32)
+}
+
 /// Candidates valued per observation.
 pub const CANDIDATES: usize = 64;
 
@@ -50,12 +65,14 @@ pub fn candidates(actor: [f32; 2]) -> [[f32; 2]; CANDIDATES] {
 
 /// For each observation, the candidate around the actor's action (`actions`,
 /// one per observation) that the smaller of the two critics' values ranks
-/// highest; the actor's own action where nothing is valued above it, where
-/// the critics give NaN, and where the action itself is not finite (a
-/// broken actor is not steered by its critics).
+/// highest; the actor's own action where none is valued more than `margin`
+/// (in the critics' units, [`margin`]) above it, where the critics give
+/// NaN, and where the action itself is not finite (a broken actor is not
+/// steered by its critics).
 pub fn choose<N: Networks>(
     networks: &N,
     critics: &[N::Critic; 2],
+    margin: f32,
     observations: &[&Observation],
     actions: &[[f32; 2]],
     device: &Device,
@@ -89,7 +106,11 @@ pub fn choose<N: Networks>(
             let value = |j: usize| values[0][i * CANDIDATES + j].min(values[1][i * CANDIDATES + j]);
             let best =
                 (1..CANDIDATES).fold(0, |best, j| if value(j) > value(best) { j } else { best });
-            tried[best]
+            if value(best) > value(0) + margin {
+                tried[best]
+            } else {
+                tried[0]
+            }
         })
         .collect()
 }

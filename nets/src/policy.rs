@@ -71,28 +71,38 @@ impl std::fmt::Debug for NetworkPolicy {
 struct Inference<N: Networks> {
     networks: N,
     actor: N::Actor,
-    critics: Option<[N::Critic; 2]>,
+    check: Option<Check<N>>,
     device: Device,
+}
+
+/// The learner's critics and the margin by which they must prefer a
+/// candidate to the actor's action ([`critic_search::choose`]).
+struct Check<N: Networks> {
+    critics: [N::Critic; 2],
+    margin: f32,
 }
 
 impl NetworkPolicy {
     /// A policy from an actor of `networks`, acting alone.
     pub fn new<N: Networks>(networks: N, actor: N::Actor, device: Device) -> Self {
-        Self::checked(networks, actor, None, device)
+        Self::checked(networks, actor, None, None, device)
     }
 
     /// A policy from an actor of `networks` whose actions `critics`, where
-    /// given, check.
+    /// given, check; their values are rewards times `reward_scale`, where
+    /// known ([`critic_search::margin`]).
     pub fn checked<N: Networks>(
         networks: N,
         actor: N::Actor,
         critics: Option<[N::Critic; 2]>,
+        reward_scale: Option<f64>,
         device: Device,
     ) -> Self {
+        let margin = critic_search::margin(reward_scale);
         Self(Box::new(Inference {
             networks,
             actor,
-            critics,
+            check: critics.map(|critics| Check { critics, margin }),
             device,
         }))
     }
@@ -122,9 +132,16 @@ impl NetworkPolicy {
             let Decoded {
                 actor,
                 critics,
+                critic_reward_scale,
                 info,
             } = decode(bytes, &networks, device)?;
-            let policy = NetworkPolicy::checked(networks, actor, critics, device.clone());
+            let policy = NetworkPolicy::checked(
+                networks,
+                actor,
+                critics,
+                critic_reward_scale,
+                device.clone(),
+            );
             (policy, info)
         }))
     }
@@ -158,11 +175,11 @@ impl Policy for NetworkPolicy {
 
 impl<N: Networks> Acting for Inference<N> {
     fn has_critics(&self) -> bool {
-        self.critics.is_some()
+        self.check.is_some()
     }
 
     fn drop_critics(&mut self) {
-        self.critics = None;
+        self.check = None;
     }
 }
 
@@ -183,9 +200,15 @@ impl<N: Networks> Policy for Inference<N> {
             .try_to_vec()
             .expect("the actor outputs f32");
         let mut chosen: Vec<[f32; 2]> = out.chunks_exact(2).map(|xy| [xy[0], xy[1]]).collect();
-        if let Some(critics) = &self.critics {
-            chosen =
-                critic_search::choose(&self.networks, critics, observations, &chosen, &self.device);
+        if let Some(Check { critics, margin }) = &self.check {
+            chosen = critic_search::choose(
+                &self.networks,
+                critics,
+                *margin,
+                observations,
+                &chosen,
+                &self.device,
+            );
         }
         for (action, [x, y]) in actions.iter_mut().zip(chosen) {
             *action = Action::clipped(x, y).unwrap_or(Action::ZERO);

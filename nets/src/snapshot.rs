@@ -130,18 +130,24 @@ fn digest(tensors: &Tensors) -> String {
 
 /// Writes `actor` and `info` as safetensors bytes.
 pub fn encode<M: Module>(actor: &M, info: &SnapshotInfo) -> Vec<u8> {
-    serialise(named::<M, M>(actor, &[]), info)
+    serialise(named::<M, M>(actor, &[]), info, HashMap::new())
 }
 
-/// Writes `actor`, the learner's two `critics` and `info` as safetensors
-/// bytes.
+/// Writes `actor`, the learner's two `critics`, the `reward_scale` their
+/// values are in (rewards times it) and `info` as safetensors bytes.
 pub fn encode_with_critics<M: Module, C: Module>(
     actor: &M,
     critics: &[C; 2],
+    reward_scale: f64,
     info: &SnapshotInfo,
 ) -> Vec<u8> {
-    serialise(named(actor, critics), info)
+    let mut metadata = HashMap::new();
+    metadata.insert(REWARD_SCALE.to_string(), reward_scale.to_string());
+    serialise(named(actor, critics), info, metadata)
 }
+
+/// The metadata field with the scale of the critics' values.
+const REWARD_SCALE: &str = "critic_reward_scale";
 
 /// Every tensor of `actor` by its path, and of each of `critics` by its
 /// path under its prefix in [`CRITIC_PREFIXES`].
@@ -156,8 +162,8 @@ fn named<M: Module, C: Module>(actor: &M, critics: &[C]) -> Named {
     named
 }
 
-fn serialise(named: Named, info: &SnapshotInfo) -> Vec<u8> {
-    let mut metadata = HashMap::new();
+/// The file of `named`'s tensors, with `info` and `metadata` in its header.
+fn serialise(named: Named, info: &SnapshotInfo, mut metadata: HashMap<String, String>) -> Vec<u8> {
     metadata.insert("format".to_string(), "tweezer-snapshot".to_string());
     metadata.insert(
         "architecture".to_string(),
@@ -277,6 +283,9 @@ pub struct Decoded<N: Networks> {
     pub actor: N::Actor,
     /// The learner's two critics, when the snapshot carries them.
     pub critics: Option<[N::Critic; 2]>,
+    /// The scale of the critics' values (rewards times it), where the
+    /// snapshot records it: those from before 2026-11-29 do not.
+    pub critic_reward_scale: Option<f64>,
     /// Architecture, version and training step.
     pub info: SnapshotInfo,
 }
@@ -286,6 +295,7 @@ impl<N: Networks> std::fmt::Debug for Decoded<N> {
         f.debug_struct("Decoded")
             .field("info", &self.info)
             .field("critics", &self.critics.is_some())
+            .field("critic_reward_scale", &self.critic_reward_scale)
             .finish_non_exhaustive()
     }
 }
@@ -334,9 +344,21 @@ pub fn decode<N: Networks>(
             reason: "not part of the network".into(),
         });
     }
+    let critic_reward_scale = if metadata.contains_key(REWARD_SCALE) {
+        let scale: f64 = field(&metadata, REWARD_SCALE)?;
+        if !(scale.is_finite() && scale > 0.0) {
+            return Err(SnapshotError::Metadata {
+                field: REWARD_SCALE,
+            });
+        }
+        Some(scale)
+    } else {
+        None
+    };
     Ok(Decoded {
         actor,
         critics,
+        critic_reward_scale,
         info,
     })
 }
@@ -354,7 +376,7 @@ pub fn without_critics(bytes: &[u8]) -> Result<Vec<u8>, SnapshotError> {
         path: Vec::new(),
         tensors,
     };
-    Ok(serialise(named, &info))
+    Ok(serialise(named, &info, HashMap::new()))
 }
 
 /// Whether tensor `name` is one of the critics'.

@@ -158,9 +158,12 @@ fn a_snapshot_with_the_critics_lets_them_check_the_actor() {
     let networks = set(SetShape::new([1280, 1024]));
     let actor = networks.actor(&device);
     let critics = [networks.critic(&device), networks.critic(&device)];
-    let bytes = encode_with_critics(&actor, &critics, &info(networks.architecture()));
+    // A scale small enough that untrained critics clear the margin.
+    let scale = 1e-6;
+    let bytes = encode_with_critics(&actor, &critics, scale, &info(networks.architecture()));
     let decoded = decode(&bytes, &networks, &device).unwrap();
     let loaded = decoded.critics.expect("the critics travel with the actor");
+    assert_eq!(decoded.critic_reward_scale, Some(scale));
 
     let obs = observations();
     let refs: Vec<&Observation> = obs.iter().collect();
@@ -184,9 +187,11 @@ fn a_snapshot_with_the_critics_lets_them_check_the_actor() {
         NetworkPolicy::from_snapshot(&bytes, &EnvConfig::default(), &device).unwrap();
     assert!(checked.has_critics());
     let chosen = actions(&mut checked);
+    let margin = critic_search::margin(Some(scale));
+    assert!(margin > 0.0);
     assert_eq!(
         chosen,
-        critic_search::choose(&networks, &critics, &refs, &own, &device)
+        critic_search::choose(&networks, &critics, margin, &refs, &own, &device)
     );
     // The choice is among the candidates around the actor's action, and
     // the critics value it at least as highly as the actor's own.
@@ -204,10 +209,50 @@ fn a_snapshot_with_the_critics_lets_them_check_the_actor() {
     // Untrained critics disagree with an untrained actor somewhere.
     assert_ne!(chosen, own);
 
+    // A candidate replaces the actor's action only where the critics
+    // value it more than the margin above it.
+    let choose =
+        |margin: f32| critic_search::choose(&networks, &critics, margin, &refs, &own, &device);
+    let free = choose(0.0);
+    let gains: Vec<f32> = value(&networks, &critics, &refs, &free, &device)
+        .iter()
+        .zip(&mine)
+        .map(|(f, m)| f - m)
+        .collect();
+    let (i, gain) = gains
+        .iter()
+        .copied()
+        .enumerate()
+        .max_by(|a, b| a.1.total_cmp(&b.1))
+        .unwrap();
+    assert!(gain > 0.0 && free[i] != own[i], "{gains:?}");
+    assert_eq!(choose(0.5 * gain)[i], free[i]);
+    assert_eq!(choose(gain), own, "nothing beats the actor by the margin");
+
     // Without them, the actor acts alone, as it did before loading.
     let alone = checked.actor_alone();
     assert!(!alone.has_critics());
     assert_eq!(actions(&mut { alone }), own);
+
+    // A scale the critics' values cannot be in is refused, by name.
+    for bad in ["-0.1", "0", "NaN", "inf", "a tenth"] {
+        let err = decode(
+            &with_metadata(&bytes, "critic_reward_scale", bad),
+            &networks,
+            &device,
+        )
+        .unwrap_err();
+        assert_eq!(
+            err,
+            SnapshotError::Metadata {
+                field: "critic_reward_scale"
+            },
+            "{bad}"
+        );
+    }
+    // A snapshot from before the scale was recorded is checked without a
+    // margin, as it was measured.
+    assert_eq!(critic_search::margin(None), 0.0);
 
     // Stripped of its critics, the file is its actor alone, verified.
     let stripped = without_critics(&bytes).unwrap();

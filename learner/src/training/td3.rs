@@ -330,6 +330,11 @@ impl<N: Networks> Td3<N> {
         [self.critics.q1.valid(), self.critics.q2.valid()]
     }
 
+    /// The scale of the critics' values: rewards times it.
+    pub fn reward_scale(&self) -> f64 {
+        self.config.reward_scale
+    }
+
     /// The current policy, for inference (no autodiff).
     pub fn policy(&self) -> N::Actor {
         self.actor.valid()

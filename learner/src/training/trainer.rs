@@ -436,9 +436,12 @@ impl<N: Networks> Trainer<N> {
         // The set network's critics are small and cheap to ask; the CNN's
         // are as large as its actor and would render 64 images a step.
         let bytes = match info.architecture {
-            Architecture::Set(_) => {
-                encode_with_critics(&self.td3.policy(), &self.td3.critics(), &info)
-            }
+            Architecture::Set(_) => encode_with_critics(
+                &self.td3.policy(),
+                &self.td3.critics(),
+                self.td3.reward_scale(),
+                &info,
+            ),
             Architecture::Paper { .. } => encode(&self.td3.policy(), &info),
         };
         let (published, best) = snapshots.publish(bytes, rolling_return)?;
