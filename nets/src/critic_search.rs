@@ -1,6 +1,7 @@
 //! The actor's action checked against the learner's critics: the critics
 //! value a fixed fan of candidate actions around it and the policy takes
-//! the one both value most. The actor alone must fit the choice between
+//! the one both value most, where they value it a margin above the actor's
+//! own. The actor alone must fit the choice between
 //! detours into one pooled summary; the critics judge each candidate
 //! against every sphere it passes, so they catch the collisions the actor
 //! misses (`docs/training.md`, "The critics' check").
