@@ -258,7 +258,7 @@ pub struct SetNetworkConfig {
     pub sphere_hidden: usize,
     /// Width of the two layers after pooling.
     pub head_hidden: usize,
-    /// `max_mean`, `max`, `mean` or `max_attention`.
+    /// `max_mean`, `max` or `mean`.
     pub pooling: Pooling,
     /// Most spheres a set holds; a scene with more keeps the nearest.
     pub max_spheres: usize,

@@ -38,9 +38,6 @@ pub enum Pooling {
     Max,
     /// Masked mean only.
     Mean,
-    /// Masked max, and a softmax-weighted sum whose weights a learned
-    /// score of each sphere gives.
-    MaxAttention,
 }
 
 impl Pooling {
@@ -50,13 +47,12 @@ impl Pooling {
             Self::MaxMean => "max_mean",
             Self::Max => "max",
             Self::Mean => "mean",
-            Self::MaxAttention => "max_attention",
         }
     }
 
     /// The pooling called `name`.
     pub fn from_name(name: &str) -> Option<Self> {
-        [Self::MaxMean, Self::Max, Self::Mean, Self::MaxAttention]
+        [Self::MaxMean, Self::Max, Self::Mean]
             .into_iter()
             .find(|p| p.name() == name)
     }
@@ -64,7 +60,7 @@ impl Pooling {
     /// Pooled features per per-sphere feature.
     pub fn factor(self) -> usize {
         match self {
-            Self::MaxMean | Self::MaxAttention => 2,
+            Self::MaxMean => 2,
             Self::Max | Self::Mean => 1,
         }
     }

@@ -1,16 +1,16 @@
 //! The permutation-invariant encoder of a sphere set: a shared per-sphere
 //! MLP on the batch's real spheres, then pooling over each set (max and
-//! mean, either alone, or max and attention). Per-sphere features pass
-//! ReLU last, so they are never negative: padding (zeros) can neither win
-//! the max nor move the sum the mean divides by the set's size, and an
-//! empty set encodes as zeros.
+//! mean, or either alone). Per-sphere features pass ReLU last, so they are
+//! never negative: padding (zeros) can neither win the max nor move the
+//! sum the mean divides by the set's size, and an empty set encodes as
+//! zeros.
 
 use crate::architecture::{Pooling, SphereInputs};
 use crate::spheres::{SetBatch, rows_or_zero};
 use burn::config::Config;
 use burn::module::Module;
 use burn::nn::{Linear, LinearConfig};
-use burn::tensor::activation::{relu, softmax};
+use burn::tensor::activation::relu;
 use burn::tensor::{Device, Tensor};
 
 /// Per-sphere MLP and pooling.
@@ -18,8 +18,6 @@ use burn::tensor::{Device, Tensor};
 pub struct SetEncoder {
     fc1: Linear,
     fc2: Linear,
-    /// Each sphere's attention score, for [`Pooling::MaxAttention`].
-    score: Option<Linear>,
     #[module(skip)]
     pooling: Pooling,
 }
@@ -44,8 +42,6 @@ impl SetEncoderConfig {
         SetEncoder {
             fc1: LinearConfig::new(self.inputs.features(), self.hidden).init(device),
             fc2: LinearConfig::new(self.hidden, self.hidden).init(device),
-            score: (self.pooling == Pooling::MaxAttention)
-                .then(|| LinearConfig::new(self.hidden, 1).init(device)),
             pooling: self.pooling,
         }
     }
@@ -81,14 +77,6 @@ impl SetEncoder {
         let x = relu(first.spheres); // [spheres, hidden]
         let x = relu(self.fc2.forward(x)); // [spheres, hidden]
         let [_, hidden] = x.dims();
-        // Attention's weights over each set: padding's score sinks far
-        // below any sphere's; an empty set weighs its zero rows alike.
-        let weights = self.score.as_ref().map(|score| {
-            let score = score.forward(x.clone()); // [spheres, 1]
-            let real = rows_or_zero(score.ones_like(), first.slots.clone()); // [batch width, 1]
-            let logits = rows_or_zero(score, first.slots.clone()) + (real - 1.0) * 1e9;
-            softmax(logits.reshape([batch, width, 1]), 1) // [batch, width, 1]
-        });
         // Padding reads a zero row: never above a ReLU output, nothing
         // added to a sum.
         let x = rows_or_zero(x, first.slots) // [batch width, hidden]
@@ -99,11 +87,6 @@ impl SetEncoder {
             Pooling::MaxMean => Tensor::cat(vec![max(), mean()], 1), // [batch, 2 hidden]
             Pooling::Max => max(),
             Pooling::Mean => mean(),
-            Pooling::MaxAttention => {
-                let w = weights.expect("`init` and snapshots give attention its score layer");
-                let attended = (x.clone() * w).sum_dim(1).reshape([batch, hidden]);
-                Tensor::cat(vec![max(), attended], 1) // [batch, 2 hidden]
-            }
         }
     }
 }

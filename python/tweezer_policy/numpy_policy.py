@@ -53,14 +53,6 @@ def paper_actor(t, images, vectors):
     return np.tanh(head(t, np.concatenate([x, vectors], axis=1)))
 
 
-def attention(t, x):
-    """The sum of a set's per-sphere features [n, hidden] weighted by the
-    softmax of each sphere's score."""
-    scores = linear(t, "encoder.score", x)[:, 0]
-    weights = np.exp(scores - scores.max())
-    return (weights / weights.sum()) @ x
-
-
 def set_actor(t, pooling, sets, vectors):
     """sets: one [n_i, 3] (positions), [n_i, 6] (motion) or [n_i, 10] (goal) array of sphere
     features per observation;
@@ -72,12 +64,9 @@ def set_actor(t, pooling, sets, vectors):
             x = relu(linear(t, "encoder.fc1", features))
             x = relu(linear(t, "encoder.fc2", x))
             biggest, mean = x.max(axis=0), x.sum(axis=0) / len(features)
-            attended = attention(t, x) if pooling == "max_attention" else None
         else:
-            biggest = mean = attended = np.zeros(hidden, dtype=np.float32)
-        parts = {"max_mean": [biggest, mean], "max": [biggest], "mean": [mean],
-                 "max_attention": [biggest, attended]}
-        pooled.append(parts[pooling])
+            biggest = mean = np.zeros(hidden, dtype=np.float32)
+        pooled.append({"max_mean": [biggest, mean], "max": [biggest], "mean": [mean]}[pooling])
     x = np.stack([np.concatenate(p) for p in pooled]).reshape(len(sets), -1)
     return np.tanh(head(t, np.concatenate([x, vectors], axis=1)))
 

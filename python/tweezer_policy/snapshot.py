@@ -16,7 +16,7 @@ FIELDS = {
     PAPER: ("height", "width"),
     SET: ("sphere_hidden", "head_hidden", "pooling", "max_spheres", "fov_width", "fov_height"),
 }
-POOLINGS = ("max_mean", "max", "mean", "max_attention")
+POOLINGS = ("max_mean", "max", "mean")
 # What a set network reads of each sphere; snapshots without the field read
 # positions.
 INPUTS = ("positions", "motion", "goal")

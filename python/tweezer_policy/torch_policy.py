@@ -60,12 +60,9 @@ class TorchActor(torch.nn.Module):
                 if len(f):
                     h = F.relu(self._linear("encoder.fc2", F.relu(self._linear("encoder.fc1", f))))
                     biggest, mean = h.max(0).values, h.sum(0) / len(f)
-                    attended = (torch.softmax(self._linear("encoder.score", h)[:, 0], 0) @ h
-                                if self.pooling == "max_attention" else None)
                 else:
-                    biggest = mean = attended = torch.zeros(hidden)
-                parts = {"max_mean": [biggest, mean], "max": [biggest], "mean": [mean],
-                         "max_attention": [biggest, attended]}
+                    biggest = mean = torch.zeros(hidden)
+                parts = {"max_mean": [biggest, mean], "max": [biggest], "mean": [mean]}
                 pooled.append(torch.cat(parts[self.pooling]))
             x = torch.stack(pooled).reshape(len(inputs), -1)
         return torch.tanh(self._head(torch.cat([x, vectors], 1)))

@@ -2,7 +2,7 @@
 //! `pyproject.toml` into a fresh venv) loads snapshots of both
 //! architectures trained by a short real run (a learner and an actor over
 //! gRPC; the set network reads motion, also turned towards the goal, or
-//! reads and acts in the goal frame and pools with attention), and its
+//! reads and acts in the goal frame), and its
 //! actions for unseen observations match the Rust policy's actor alone
 //! (`actor act --actor-alone`) to
 //! 1e-4; it refuses a snapshot whose weights were altered.
@@ -117,7 +117,7 @@ fn python_loads_trained_snapshots_of_both_architectures_and_acts_as_rust_does() 
         (
             "set-goal-frame",
             "[learner.network]\nkind = \"set\"\nsphere_hidden = 32\ninputs = \"motion\"\n\
-             frame = \"goal\"\npooling = \"max_attention\"\n",
+             frame = \"goal\"\n",
         ),
     ] {
         let work = dir.path().join(name);
