@@ -15,7 +15,7 @@ use std::process::{Child, Command, Stdio};
 use std::sync::{Arc, Mutex, MutexGuard};
 use std::time::{Duration, Instant};
 use tweezer_gym::Baseline;
-use tweezer_hardware_agent::control::{Ending, Halt};
+use tweezer_hardware_agent::control::{ControlConfig, Ending, Halt};
 use tweezer_hardware_agent::policy_source::LoadedPolicy;
 use tweezer_vision::genicam::{Acquisition, GenicamCamera, GenicamConfig, PixelFormat};
 use tweezer_vision::{Camera, CameraError, FrameCounters};
@@ -290,8 +290,14 @@ fn a_camera_lost_mid_episode_is_a_fault_with_the_stages_stopped_then_reconnects(
     let _port = one_camera();
     let fake = FakeCamera::start();
     // The test pattern holds no trapped sphere: the loop holds the stages
-    // still, frame after frame, until it gives up.
-    let (config, control) = common::agent_config(100);
+    // still, frame after frame, until it gives up. The loop runs at the
+    // shipped rate: a step waits a control period for its frame, and the
+    // simulated camera now and then leaves 120 ms between two frames.
+    let (config, control) = common::agent_config(40);
+    let control = ControlConfig {
+        rate_hz: ControlConfig::default().rate_hz,
+        ..control
+    };
     let counters = Arc::new(FrameCounters::default());
     let camera = GenicamCamera::open(
         &GenicamConfig {
@@ -307,9 +313,9 @@ fn a_camera_lost_mid_episode_is_a_fault_with_the_stages_stopped_then_reconnects(
     let mut policy = LoadedPolicy::baseline(Baseline::Greedy, &config.env);
     let halt = Halt::default();
 
-    // The camera dies a second into the episode.
+    // The camera dies two seconds into the episode.
     let killer = std::thread::spawn(move || {
-        std::thread::sleep(Duration::from_secs(1));
+        std::thread::sleep(Duration::from_secs(2));
         drop(fake);
     });
     let summary = rig.run_episode(policy.policy.as_mut(), [500.0, 0.0], &halt, |_| {});
@@ -330,5 +336,5 @@ fn a_camera_lost_mid_episode_is_a_fault_with_the_stages_stopped_then_reconnects(
     let _back = FakeCamera::start();
     let summary = rig.run_episode(policy.policy.as_mut(), [500.0, 0.0], &halt, |_| {});
     assert_eq!(summary.ending, Ending::TrapLost, "{summary:?}");
-    assert!(counters.read()[0] >= before + 100);
+    assert!(counters.read()[0] >= before + 40);
 }
