@@ -293,7 +293,8 @@ fn a_camera_lost_mid_episode_is_a_fault_with_the_stages_stopped_then_reconnects(
     // still, frame after frame, until it gives up. The loop runs at the
     // shipped rate: a step waits a control period for its frame, and the
     // simulated camera now and then leaves 120 ms between two frames.
-    let (config, control) = common::agent_config(40);
+    let lost_trap_frames = 40;
+    let (config, control) = common::agent_config(lost_trap_frames);
     let control = ControlConfig {
         rate_hz: ControlConfig::default().rate_hz,
         ..control
@@ -336,5 +337,5 @@ fn a_camera_lost_mid_episode_is_a_fault_with_the_stages_stopped_then_reconnects(
     let _back = FakeCamera::start();
     let summary = rig.run_episode(policy.policy.as_mut(), [500.0, 0.0], &halt, |_| {});
     assert_eq!(summary.ending, Ending::TrapLost, "{summary:?}");
-    assert!(counters.read()[0] >= before + 40);
+    assert!(counters.read()[0] >= before + u64::from(lost_trap_frames));
 }
