@@ -5,6 +5,7 @@
 
 use serde::{Deserialize, Serialize};
 use std::fmt;
+use tweezer_gym::EnvConfig;
 
 /// The paper's CNN actor, as snapshots name it.
 pub const PAPER_ARCHITECTURE: &str = "tweezer-paper-actor-v1";
@@ -212,13 +213,25 @@ pub struct SetShape {
     /// The frame it reads and acts in.
     #[serde(default)]
     pub frame: Frame,
+    /// Px of displacement per unit of the motion features: the largest
+    /// free-sphere speed per axis of the world it was trained in, so that
+    /// they span about ±1 however fast its spheres move.
+    #[serde(default = "default_motion_unit")]
+    pub motion_unit_px: f32,
+}
+
+/// The motion unit of files from before it was recorded: the spec's
+/// free-sphere speed, to which it was fixed.
+fn default_motion_unit() -> f32 {
+    EnvConfig::default().max_sphere_speed_px as f32
 }
 
 impl SetShape {
     /// The default set network (the `lean` preset's) for a `fov_px` field:
     /// 64-wide per-sphere and head layers, max and mean pooling, the 32
     /// nearest spheres, positions only, the critic's action joined after
-    /// pooling, in the stage's frame.
+    /// pooling, in the stage's frame, motion in units of the spec's
+    /// free-sphere speed.
     pub fn new(fov_px: [u32; 2]) -> Self {
         Self {
             sphere_hidden: 64,
@@ -230,6 +243,7 @@ impl SetShape {
             action_join: ActionJoin::Pooled,
             critic_layer_norm: false,
             frame: Frame::Stage,
+            motion_unit_px: default_motion_unit(),
         }
     }
 }
@@ -282,6 +296,7 @@ impl Architecture {
                 ("action_join", s.action_join.name().to_string()),
                 ("critic_layer_norm", s.critic_layer_norm.to_string()),
                 ("frame", s.frame.name().to_string()),
+                ("motion_unit_px", s.motion_unit_px.to_string()),
             ],
         }
     }
@@ -337,6 +352,11 @@ impl Architecture {
                         Frame::from_name(name).ok_or(ArchitectureError::Field("frame"))?
                     }
                 },
+                // Files from before it was recorded: the spec's speed.
+                motion_unit_px: match field("motion_unit_px") {
+                    None => default_motion_unit(),
+                    Some(_) => parse(&field, "motion_unit_px")?,
+                },
             }),
             other => return Err(ArchitectureError::Unknown(other.to_string())),
         };
@@ -360,6 +380,11 @@ impl Architecture {
             if !(1..=MAX_SIZE).contains(&value) {
                 return Err(ArchitectureError::Size { name, value });
             }
+        }
+        if let Self::Set(s) = self
+            && !(s.motion_unit_px.is_finite() && s.motion_unit_px > 0.0)
+        {
+            return Err(ArchitectureError::MotionUnit(s.motion_unit_px.to_string()));
         }
         if let Self::Paper { height, width } = *self {
             let min = crate::encoder::min_image_side();
@@ -403,6 +428,9 @@ pub enum ArchitectureError {
         /// Its value.
         value: usize,
     },
+    /// A motion unit no displacement can be divided by.
+    #[error("architecture field `motion_unit_px` = {0}: must be a positive number of px")]
+    MotionUnit(String),
     /// Images too small for the paper network's convolutions.
     #[error(
         "images of {width} x {height} pixels are too small for the paper network: its convolutions need at least {min} each way"

@@ -48,4 +48,4 @@ pub use snapshot::{
     CRITIC_PREFIXES, Decoded, SnapshotError, SnapshotInfo, decode, encode, encode_with_critics,
     file_sha256, read_info, without_critics,
 };
-pub use spheres::{MOTION_SCALE_PX, Scene, SetBatch, SphereSets};
+pub use spheres::{Scene, SetBatch, SphereSets};

@@ -11,7 +11,7 @@ use crate::images::render_images;
 use crate::set_actor::{SetActor, SetActorConfig};
 use crate::set_critic::{SetCritic, SetCriticConfig, SetFeatures};
 use crate::set_encoder::SetEncoderConfig;
-use crate::spheres::{MOTION_SCALE_PX, Scene, SetBatch, SphereSets};
+use crate::spheres::{Scene, SetBatch, SphereSets};
 use burn::module::{Module, ModuleDisplay};
 use burn::tensor::{Device, Tensor};
 use tweezer_config::ConfigError;
@@ -250,7 +250,7 @@ impl Networks for SetNetworks {
                 self.shape
                     .inputs
                     .has_motion()
-                    .then_some(MOTION_SCALE_PX / self.stage_speed_px),
+                    .then_some(self.shape.motion_unit_px / self.stage_speed_px),
             )
             .init(device)
     }

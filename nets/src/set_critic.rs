@@ -220,7 +220,7 @@ impl SetCritic {
 mod tests {
     use super::*;
     use crate::architecture::{SetShape, SphereInputs};
-    use crate::spheres::{MOTION_SCALE_PX, Scene, SphereSets};
+    use crate::spheres::{Scene, SphereSets};
     use burn::tensor::TensorData;
 
     /// A sphere 64 px right of the trap and 16 px below, moving `moved` px
@@ -238,7 +238,7 @@ mod tests {
         let scene = Scene::new(&centres, &displacements, [1.0, 0.0]);
         let set = sets.batch([scene].into_iter(), &device);
         let actions = Tensor::from_data(TensorData::new(action.to_vec(), [1, 2]), &device);
-        Passed::of(&set, Some(MOTION_SCALE_PX / 10.0))
+        Passed::of(&set, Some(shape.motion_unit_px / 10.0))
             .passing(actions)
             .into_data()
             .try_to_vec::<f32>()

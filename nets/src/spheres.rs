@@ -15,10 +15,6 @@ use burn::module::Module;
 use burn::tensor::{Device, Int, Tensor, TensorData};
 use tweezer_gym::Observation;
 
-/// Px of displacement per unit of the motion features: a free sphere's
-/// largest speed per axis (`docs/spec.md` §2), so they span about ±1.
-pub const MOTION_SCALE_PX: f32 = 2.0;
-
 /// What a network reads of one observation besides the target vector.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Scene<'a> {
@@ -82,6 +78,8 @@ pub struct SphereSets {
     trap_px: [f32; 2],
     /// Px per unit of position: half the trained field's width.
     scale_px: f32,
+    /// Px per unit of displacement: [`SetShape::motion_unit_px`].
+    motion_unit_px: f32,
     /// The most spheres kept; an observation with more keeps the nearest.
     max_spheres: usize,
     /// What each sphere's row holds.
@@ -143,7 +141,7 @@ impl SetBatch {
         self.spheres.clone().narrow(1, 0, 2)
     }
 
-    /// Each sphere's displacement over [`MOTION_SCALE_PX`], in the
+    /// Each sphere's displacement over [`SetShape::motion_unit_px`], in the
     /// network's frame (zero for one new to the view): the two values
     /// after its distance, where rows carry motion. `[spheres, 2]`.
     pub(crate) fn motions(&self) -> Tensor<2> {
@@ -176,6 +174,7 @@ impl SphereSets {
         Self {
             trap_px: fov_px.map(|v| 0.5 * v as f32),
             scale_px: 0.5 * shape.fov_px[0] as f32,
+            motion_unit_px: shape.motion_unit_px,
             max_spheres: shape.max_spheres,
             inputs: shape.inputs,
             frame: shape.frame,
@@ -185,7 +184,7 @@ impl SphereSets {
     /// The features of a scene's spheres, nearest first and at most
     /// `max_spheres`, one row of [`SphereInputs::features`] values each:
     /// position and distance, then (with motion) the displacement over
-    /// [`MOTION_SCALE_PX`] and 1 for a sphere new to the view (whose
+    /// [`SetShape::motion_unit_px`] and 1 for a sphere new to the view (whose
     /// displacement reads 0), then (with goal) the position and the
     /// displacement along and across the heading to the target.
     pub fn features(&self, scene: Scene) -> Vec<Vec<f32>> {
@@ -213,10 +212,10 @@ impl SphereSets {
                 if !self.inputs.has_motion() {
                     return row;
                 }
-                // The displacement over MOTION_SCALE_PX, along the stage's axes.
+                // The displacement in motion units, along the stage's axes.
                 let moved = scene
                     .displacement(k)
-                    .map(|d| d.map(|v| v / MOTION_SCALE_PX));
+                    .map(|d| d.map(|v| v / self.motion_unit_px));
                 match moved {
                     Some(m) => {
                         row.extend(turn(m));

@@ -4,8 +4,8 @@
 use burn::tensor::{Device, Tensor, TensorData};
 use tweezer_gym::SplitMix64;
 use tweezer_nets::{
-    ActionJoin, Frame, MOTION_SCALE_PX, Networks, Pooling, Scene, SetActor, SetActorConfig,
-    SetCritic, SetCriticConfig, SetEncoderConfig, SetNetworks, SetShape, SphereInputs, SphereSets,
+    ActionJoin, Frame, Networks, Pooling, Scene, SetActor, SetActorConfig, SetCritic,
+    SetCriticConfig, SetEncoderConfig, SetNetworks, SetShape, SphereInputs, SphereSets,
 };
 
 const FOV: [u32; 2] = [320, 256];
@@ -209,7 +209,9 @@ fn motion_reads_each_displacement_and_flags_newcomers() {
     let sets = SphereSets::new(&shape, FOV);
     let centres = [[170.0, 128.0], [160.0, 148.0]];
     let features = sets.features(Scene::new(&centres, &[Some([1.0, -2.0]), None], [1.0, 0.0]));
-    let step = MOTION_SCALE_PX;
+    // In units of the spec's free-sphere speed, unless the shape records another.
+    let step = shape.motion_unit_px;
+    assert_eq!(step, 2.0);
     assert_close(
         &features[0],
         &[
@@ -230,6 +232,22 @@ fn motion_reads_each_displacement_and_flags_newcomers() {
     // Motion unknown: every sphere is new.
     let unknown = sets.features(Scene::without_motion(&centres));
     assert!(unknown.iter().all(|row| row[3..] == [0.0, 0.0, 1.0]));
+    // Trained among spheres four times as fast: the same move reads a
+    // quarter as much, and positions are unchanged.
+    let fast = SphereSets::new(
+        &SetShape {
+            motion_unit_px: 8.0,
+            ..shape
+        },
+        FOV,
+    );
+    let slow = fast.features(Scene::new(&centres, &[Some([1.0, -2.0]), None], [1.0, 0.0]));
+    assert_close(&slow[0][..3], &features[0][..3], "positions");
+    assert_close(
+        &slow[0][3..5],
+        &[1.0 / 8.0, -2.0 / 8.0],
+        "in the recorded unit",
+    );
 }
 
 #[test]
@@ -244,7 +262,7 @@ fn goal_inputs_turn_offset_and_motion_towards_the_target() {
     // The target straight down (+y): ahead is +y, and across is −x (the
     // frame's y axis, x turned a quarter to the left).
     let features = sets.features(Scene::new(&centres, &moves, [0.0, 0.5]));
-    let (step, unit) = (MOTION_SCALE_PX, 160.0);
+    let (step, unit) = (shape.motion_unit_px, 160.0);
     assert_close(
         &features[0],
         &[

@@ -41,10 +41,22 @@ fn snapshot<N: Networks>(networks: &N, device: &Device) -> (N::Actor, Vec<u8>) {
 
 /// The same file with metadata `key` set to `value` (checksum untouched).
 fn with_metadata(bytes: &[u8], key: &str, value: &str) -> Vec<u8> {
+    edit_metadata(bytes, |metadata| {
+        metadata.insert(key.into(), value.into());
+    })
+}
+
+fn without_metadata(bytes: &[u8], key: &str) -> Vec<u8> {
+    edit_metadata(bytes, |metadata| {
+        assert!(metadata.remove(key).is_some(), "{key} is recorded");
+    })
+}
+
+fn edit_metadata(bytes: &[u8], edit: impl FnOnce(&mut HashMap<String, String>)) -> Vec<u8> {
     let file = safetensors::SafeTensors::deserialize(bytes).unwrap();
     let (_, header) = safetensors::SafeTensors::read_metadata(bytes).unwrap();
     let mut metadata: HashMap<String, String> = header.metadata().clone().unwrap();
-    metadata.insert(key.into(), value.into());
+    edit(&mut metadata);
     safetensors::serialize(file.tensors(), Some(metadata)).unwrap()
 }
 
@@ -109,6 +121,7 @@ fn a_set_snapshot_round_trips_with_its_hyper_parameters() {
         action_join: ActionJoin::PerSphere,
         critic_layer_norm: true,
         frame: Frame::Goal,
+        motion_unit_px: 15.0,
     };
     let networks = set(shape);
     let (actor, bytes) = snapshot(&networks, &device);
@@ -324,6 +337,13 @@ fn mismatched_architectures_are_refused_naming_what_differs() {
         .unwrap_err()
         .to_string();
     assert!(err.ends_with("frame stage vs goal"), "{err}");
+    // One trained among faster spheres reads their motion in another unit.
+    let fast = SetShape {
+        motion_unit_px: 15.0,
+        ..shape
+    };
+    let err = decode(&sets, &set(fast), &device).unwrap_err().to_string();
+    assert!(err.ends_with("motion_unit_px 2 vs 15"), "{err}");
     let err = decode(&sets, &paper(80, 64), &device)
         .unwrap_err()
         .to_string();
@@ -354,6 +374,15 @@ fn bad_metadata_and_corruption_are_refused() {
         .unwrap_err()
         .to_string();
     assert!(err.contains("`pooling`"), "{err}");
+    for unit in ["0", "-2", "NaN", "fast"] {
+        let err = load(&with_metadata(&bytes, "motion_unit_px", unit))
+            .unwrap_err()
+            .to_string();
+        assert!(err.contains("`motion_unit_px`"), "{unit}: {err}");
+    }
+    // A file from before the unit was recorded reads the spec's speed.
+    let (_, older) = load(&without_metadata(&bytes, "motion_unit_px")).unwrap();
+    assert_eq!(older.architecture, networks.architecture());
     // Images the paper network's convolutions cannot take.
     let (_, paper_bytes) = snapshot(&paper(80, 64), &device);
     let tiny = with_metadata(&with_metadata(&paper_bytes, "height", "4"), "width", "5");

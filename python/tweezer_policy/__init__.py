@@ -22,25 +22,22 @@ import numpy as np
 
 from . import numpy_policy
 from .render import Renderer
-from .snapshot import PAPER, SET, Snapshot, SnapshotError, read, weights_sha256
+from .snapshot import DEFAULT_MOTION_UNIT_PX, PAPER, SET, Snapshot, SnapshotError, read, weights_sha256
 
 __all__ = [
-    "MOTION_SCALE_PX", "PAPER", "SET", "Policy", "Renderer", "Snapshot", "SnapshotError", "goal_frame",
+    "PAPER", "SET", "Policy", "Renderer", "Snapshot", "SnapshotError", "goal_frame",
     "heading", "load", "read", "sphere_features", "to_goal_frame", "weights_sha256",
 ]
 
-# Px of displacement per unit of the motion features (the Rust networks').
-MOTION_SCALE_PX = np.float32(2.0)
-
-
 def sphere_features(centres, fov_px, trained_fov_width, max_spheres, displacements=None, vector=None,
-                    frame_heading=None):
+                    frame_heading=None, motion_unit_px=DEFAULT_MOTION_UNIT_PX):
     """One observation's set input: per free sphere (dx, dy, distance) from
     the trap (the FOV centre) in units of half the trained field's width;
     with more than `max_spheres`, the nearest. float32 [n, 3]. With
     `displacements` (one [dx, dy] px or None per centre, or an empty list
     where none is known), three more: the displacement over
-    `MOTION_SCALE_PX`, and 1 for a sphere new to the view (moving 0). With
+    `motion_unit_px` (the snapshot's), and 1 for a sphere new to the view
+    (moving 0). With
     the target `vector` too, four more: the offset and the displacement
     along and across the heading to the target (x where the vector is 0).
     With `frame_heading` (a network in the goal frame: `heading(vector)`),
@@ -56,13 +53,14 @@ def sphere_features(centres, fov_px, trained_fov_width, max_spheres, displacemen
     offsets = turn(d)
     features = np.concatenate([offsets, np.hypot(offsets[:, :1], offsets[:, 1:])], axis=1).astype(np.float32)
     if displacements is not None:
+        unit = np.float32(motion_unit_px)
         if len(displacements) not in (0, len(c)):
             raise ValueError(f"{len(displacements)} displacements for {len(c)} centres")
         motion = np.zeros((len(c), 3), dtype=np.float32)
         motion[:, 2] = 1.0
         for k, m in enumerate(displacements):
             if m is not None:
-                motion[k] = [np.float32(m[0]) / MOTION_SCALE_PX, np.float32(m[1]) / MOTION_SCALE_PX, 0.0]
+                motion[k] = [np.float32(m[0]) / unit, np.float32(m[1]) / unit, 0.0]
         features = np.concatenate([features, turn(motion[:, :2]), motion[:, 2:]], axis=1)
         if vector is not None:
             # Turned from the stage's axes, whatever the frame.
@@ -147,7 +145,7 @@ class Policy:
         goals = vectors if f["inputs"] == "goal" else [None] * len(centres)
         frames = [heading(v) for v in vectors] if f["frame"] == "goal" else [None] * len(centres)
         return [
-            sphere_features(c, self.fov_px, f["fov_width"], f["max_spheres"], m, v, h)
+            sphere_features(c, self.fov_px, f["fov_width"], f["max_spheres"], m, v, h, f["motion_unit_px"])
             for c, m, v, h in zip(centres, moves, goals, frames)
         ]
 

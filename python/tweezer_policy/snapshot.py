@@ -23,6 +23,9 @@ INPUTS = ("positions", "motion", "goal")
 # The axes a set network reads and acts along; snapshots without the field
 # use the stage's.
 FRAMES = ("stage", "goal")
+# Px of displacement per unit of a set network's motion features where a
+# snapshot does not record `motion_unit_px`: the spec's free-sphere speed.
+DEFAULT_MOTION_UNIT_PX = 2.0
 MAX_SIZE = 1 << 16
 # Where a snapshot keeps the learner's two critics (`critic1.head.out.weight`).
 # This package acts with the actor alone, as `actor act --actor-alone` does.
@@ -40,8 +43,8 @@ class Snapshot:
     architecture: str
     """`tweezer-paper-actor-v1` (the paper's CNN) or `tweezer-set-actor-v1`."""
     fields: dict
-    """Its hyper-parameters: ints, and `pooling` and (set network) `inputs`
-    and `frame` as names."""
+    """Its hyper-parameters: ints, `pooling` and (set network) `inputs` and
+    `frame` as names, and (set network) `motion_unit_px` as a float."""
     version: int
     training_step: int
     tensors: dict = field(repr=False)
@@ -108,6 +111,13 @@ def read(path):
                 f"architecture field `frame` = {frame!r}: this package reads {', '.join(FRAMES)}"
             )
         fields["frame"] = frame
+        unit = metadata.get("motion_unit_px", str(DEFAULT_MOTION_UNIT_PX))
+        try:
+            fields["motion_unit_px"] = float(unit)
+        except ValueError:
+            fields["motion_unit_px"] = float("nan")
+        if not (np.isfinite(fields["motion_unit_px"]) and fields["motion_unit_px"] > 0):
+            raise SnapshotError(f"architecture field `motion_unit_px` = {unit!r}: must be a positive number of px")
     for tensor, array in tensors.items():
         if array.dtype != np.float32:
             raise SnapshotError(f"snapshot tensor `{tensor}`: dtype {array.dtype}, expected float32")

@@ -67,6 +67,7 @@ def compare(args):
     report["architecture"] = snapshot.architecture
     report["inputs"] = snapshot.fields.get("inputs")
     report["frame"] = snapshot.fields.get("frame")
+    report["motion_unit_px"] = snapshot.fields.get("motion_unit_px")
     report["version"] = snapshot.version
     report["actions"] = len(rust)
     report["unsaturated"] = int((np.abs(rust) < 0.99).sum())

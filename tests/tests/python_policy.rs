@@ -2,7 +2,8 @@
 //! `pyproject.toml` into a fresh venv) loads snapshots of both
 //! architectures trained by a short real run (a learner and an actor over
 //! gRPC; the set network reads motion, also turned towards the goal, or
-//! reads and acts in the goal frame), and its
+//! reads and acts in the goal frame among faster spheres, whose motion unit
+//! its snapshot records), and its
 //! actions for unseen observations match the Rust policy's actor alone
 //! (`actor act --actor-alone`) to
 //! 1e-4; it refuses a snapshot whose weights were altered.
@@ -26,11 +27,12 @@ const LEARNER: &str = "[learner]\nlisten = \"127.0.0.1:0\"\nuniform_steps = 400\
     [learner.snapshots]\nevery_updates = 40\nkeep = 50\n[learner.checkpoints]\nevery_seconds = 0\n";
 
 /// Trains `network` (a `[learner.network]` table) for 1,600 steps of one
-/// actor; returns the first snapshot (untrained) and the newest.
-fn snapshots(dir: &Path, network: &str) -> [PathBuf; 2] {
+/// actor in `env` (an `[env]` table); returns the first snapshot
+/// (untrained) and the newest.
+fn snapshots(dir: &Path, env: &str, network: &str) -> [PathBuf; 2] {
     let config = write(
         &dir.join("learner.toml"),
-        &format!("{ENV}{LEARNER}{network}"),
+        &format!("{env}{LEARNER}{network}"),
     );
     let run_dir = dir.join("run");
     let (learner, addr) =
@@ -38,7 +40,7 @@ fn snapshots(dir: &Path, network: &str) -> [PathBuf; 2] {
     let learner = Running::new(learner);
     let actor_config = write(
         &dir.join("actor.toml"),
-        &format!("{ENV}[actor]\nlearner = \"{addr}\"\nenvs = 4\nbatch_steps = 100\n"),
+        &format!("{env}[actor]\nlearner = \"{addr}\"\nenvs = 4\nbatch_steps = 100\n"),
     );
     let streamed = output_of(
         Command::new(binary("actor"))
@@ -106,22 +108,27 @@ fn python_loads_trained_snapshots_of_both_architectures_and_acts_as_rust_does() 
     let script = here.join("python/policy_check.py");
     let script = script.to_str().unwrap();
     let python = bin.join("python");
-    let env = write(&dir.path().join("env.toml"), ENV);
+    // The goal-frame network learns among faster spheres, so its snapshot
+    // records a motion unit of its own.
+    let faster = ENV.replace("[env]\n", "[env]\nmax_sphere_speed_px = 5.0\n");
 
-    for (name, network) in [
-        ("paper", ""),
+    for (name, env, network) in [
+        ("paper", ENV, ""),
         (
             "set",
+            ENV,
             "[learner.network]\nkind = \"set\"\nsphere_hidden = 32\ninputs = \"goal\"\n",
         ),
         (
             "set-goal-frame",
+            faster.as_str(),
             "[learner.network]\nkind = \"set\"\nsphere_hidden = 32\ninputs = \"motion\"\n\
              frame = \"goal\"\n",
         ),
     ] {
         let work = dir.path().join(name);
         std::fs::create_dir(&work).unwrap();
+        let env_file = write(&work.join("env.toml"), env);
         let observations = work.join("observations.jsonl");
         let observations = observations.to_str().unwrap();
         check(
@@ -143,14 +150,14 @@ fn python_loads_trained_snapshots_of_both_architectures_and_acts_as_rust_does() 
             "tweezer-paper-actor-v1"
         };
         let mut unsaturated = 0;
-        let [first, newest] = snapshots(&work, network);
+        let [first, newest] = snapshots(&work, env, network);
         for snapshot in [&first, &newest] {
             let snapshot = snapshot.to_str().unwrap();
             let actions = stdout_of(&run(
                 "actor",
                 &[
                     "--config",
-                    &env,
+                    &env_file,
                     "act",
                     "--actor-alone",
                     "--policy",
@@ -185,8 +192,14 @@ fn python_loads_trained_snapshots_of_both_architectures_and_acts_as_rust_does() 
             );
             assert_eq!(report["architecture"], architecture);
             match name {
-                "set" => assert_eq!(report["inputs"], "goal", "{report}"),
-                "set-goal-frame" => assert_eq!(report["frame"], "goal", "{report}"),
+                "set" => {
+                    assert_eq!(report["inputs"], "goal", "{report}");
+                    assert_eq!(report["motion_unit_px"], 2.0, "{report}");
+                }
+                "set-goal-frame" => {
+                    assert_eq!(report["frame"], "goal", "{report}");
+                    assert_eq!(report["motion_unit_px"], 5.0, "{report}");
+                }
                 _ => {}
             }
             unsaturated += report["unsaturated"].as_u64().unwrap();
@@ -220,7 +233,7 @@ fn python_loads_trained_snapshots_of_both_architectures_and_acts_as_rust_does() 
             "actor",
             &[
                 "--config",
-                &env,
+                &env_file,
                 "act",
                 "--policy",
                 altered,
