@@ -235,14 +235,19 @@ fn the_bench_measures_the_time_from_a_frame_to_its_command_in_both_modes() {
         ),
     )
     .unwrap();
+    // At the shipped control rate: a step waits a control period for its
+    // frame, and the simulated camera sometimes pauses 120 ms, past the
+    // 100 ms period of `bench`'s default 10 Hz.
+    let rate = ControlConfig::default().rate_hz.to_string();
     let output = Command::new(env!("CARGO_BIN_EXE_hardware-agent"))
         .arg("--config")
         .arg(&config)
-        .args(["bench", "--camera", "20", "--json"])
+        .args(["bench", "--camera", "20", "--rate", &rate, "--json"])
         .output()
         .unwrap();
     assert!(output.status.success(), "{output:?}");
     let figures: serde_json::Value = serde_json::from_slice(&output.stdout).unwrap();
+    assert_eq!(figures["control_rate_hz"], ControlConfig::default().rate_hz);
     let modes = figures["modes"].as_array().unwrap();
     let names: Vec<&str> = modes
         .iter()
