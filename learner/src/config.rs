@@ -310,7 +310,7 @@ impl NetworkConfig {
                 action_join: s.action_join,
                 critic_layer_norm: s.critic_layer_norm,
                 frame: s.frame,
-                motion_unit_px: env.max_sphere_speed_px as f32,
+                motion_unit_px: SetShape::motion_unit_for(env),
             }),
         }
     }

@@ -246,6 +246,14 @@ impl SetShape {
             motion_unit_px: default_motion_unit(),
         }
     }
+
+    /// The motion unit of a network trained in `env`: its largest
+    /// free-sphere speed per axis, but never below the spec's 2 px, so that
+    /// a world of still spheres (speed 0), where only the stage moves them
+    /// in view, has a unit to divide by, and slower worlds keep the spec's.
+    pub fn motion_unit_for(env: &EnvConfig) -> f32 {
+        (env.max_sphere_speed_px as f32).max(default_motion_unit())
+    }
 }
 
 impl Architecture {

@@ -2,7 +2,7 @@
 //! padding and an empty field of view are all handled as the scene says.
 
 use burn::tensor::{Device, Tensor, TensorData};
-use tweezer_gym::SplitMix64;
+use tweezer_gym::{EnvConfig, SplitMix64};
 use tweezer_nets::{
     ActionJoin, Frame, Networks, Pooling, Scene, SetActor, SetActorConfig, SetCritic,
     SetCriticConfig, SetEncoderConfig, SetNetworks, SetShape, SphereInputs, SphereSets,
@@ -197,6 +197,38 @@ fn a_wider_field_of_view_keeps_the_trained_scale() {
         &wide[1],
         &[-2.0, -1.6, 2.0f32.hypot(1.6)],
         "beyond the trained field",
+    );
+}
+
+#[test]
+fn the_motion_unit_is_the_worlds_sphere_speed_never_below_the_specs() {
+    let unit = |speed: f64| {
+        SetShape::motion_unit_for(&EnvConfig {
+            max_sphere_speed_px: speed,
+            ..EnvConfig::default()
+        })
+    };
+    assert_eq!(SetShape::motion_unit_for(&EnvConfig::default()), 2.0);
+    assert_eq!(unit(15.0), 15.0);
+    // Still or slow spheres keep the spec's unit: a displacement in view is
+    // then mostly the stage's, and a unit of 0 would divide by zero.
+    assert_eq!(unit(0.5), 2.0);
+    assert_eq!(unit(0.0), 2.0);
+    let still = SetShape {
+        inputs: SphereInputs::Motion,
+        motion_unit_px: unit(0.0),
+        ..SetShape::new(FOV)
+    };
+    let sets = SphereSets::new(&still, FOV);
+    let features = sets.features(Scene::new(
+        &[[170.0, 128.0]],
+        &[Some([-10.0, 0.0])],
+        [1.0, 0.0],
+    ));
+    assert_close(
+        &features[0][3..],
+        &[-5.0, 0.0, 0.0],
+        "the stage's move, in the spec's unit",
     );
 }
 
