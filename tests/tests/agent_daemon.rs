@@ -25,6 +25,14 @@ fn state(status: &pb::AgentStatus) -> pb::AgentState {
     pb::AgentState::try_from(status.state).unwrap()
 }
 
+async fn current_status(client: &mut HardwareAgentClient<AuthChannel>) -> pb::AgentStatus {
+    client
+        .get_status(pb::AgentStatusRequest {})
+        .await
+        .unwrap()
+        .into_inner()
+}
+
 async fn wait_for(
     client: &mut HardwareAgentClient<AuthChannel>,
     want: pb::AgentState,
@@ -32,11 +40,7 @@ async fn wait_for(
 ) -> pb::AgentStatus {
     let deadline = Instant::now() + within;
     loop {
-        let status = client
-            .get_status(pb::AgentStatusRequest {})
-            .await
-            .unwrap()
-            .into_inner();
+        let status = current_status(client).await;
         if state(&status) == want {
             return status;
         }
@@ -182,7 +186,9 @@ async fn the_daemon_runs_episodes_stops_them_and_refuses_what_it_must() {
     };
     assert_eq!(outcome, pb::Outcome::Collision);
     assert!(saw_virtual, "the wall was in the observations");
-    let status = wait_for(&mut client, pb::AgentState::Idle, Duration::from_secs(5)).await;
+    // Once the feed says the episode ended, the status says so too.
+    let status = current_status(&mut client).await;
+    assert_eq!(state(&status), pb::AgentState::Idle);
     assert_eq!(status.last_outcome, pb::Outcome::Collision as i32);
 
     // Without the wall, an emergency stop in mid-episode: the reply comes
@@ -207,11 +213,7 @@ async fn the_daemon_runs_episodes_stops_them_and_refuses_what_it_must() {
     assert!(latency < Duration::from_secs(1), "{latency:?}");
     assert_eq!(state(&status), pb::AgentState::EmergencyStopped);
     tokio::time::sleep(Duration::from_millis(300)).await;
-    let stopped = client
-        .get_status(pb::AgentStatusRequest {})
-        .await
-        .unwrap()
-        .into_inner();
+    let stopped = current_status(&mut client).await;
     assert_eq!(state(&stopped), pb::AgentState::EmergencyStopped);
     assert_eq!(stopped.last_outcome, pb::Outcome::Stopped as i32);
     assert_eq!(stopped.message, "test");

@@ -8,10 +8,11 @@ use std::sync::Arc;
 use std::sync::atomic::Ordering;
 use std::sync::mpsc::{Receiver, Sender, channel};
 use std::thread::JoinHandle;
+use std::time::Instant;
 use tokio::sync::oneshot;
 use tweezer_gym::{Action, Observation};
 use tweezer_hardware_agent::config::AgentConfig;
-use tweezer_hardware_agent::control::{Ending, EpisodeSummary, StepLog};
+use tweezer_hardware_agent::control::{Ending, StepLog};
 use tweezer_hardware_agent::instrument::Instrument;
 use tweezer_hardware_agent::overlay::OverlaySpec;
 use tweezer_hardware_agent::policy_source::{
@@ -281,6 +282,7 @@ impl ControlThread {
         let shared = self.shared.clone();
         let records = self.config.records.dir.clone();
         let version = self.policy.version;
+        let started = Instant::now();
         let result = self.instrument.run_recorded(
             &mut self.policy,
             &header,
@@ -288,28 +290,34 @@ impl ControlThread {
             &shared.halt,
             |log| report_step(&shared, episode, version, log),
         );
-        let ending = match result {
+        let (ending, steps, time_s) = match result {
             Ok((summary, files)) => {
                 tracing::info!(episode, ending = ?summary.ending, steps = summary.steps, record = %files.record.display(), "episode ended");
-                let _ = self
-                    .shared
-                    .telemetry
-                    .send(final_telemetry(episode, version, &summary));
                 self.shared.status().period_ms = summary.timing.period_ms_mean;
                 match summary.ending {
                     Ending::Success => shared_count(&self.shared.successes),
                     Ending::Collision => shared_count(&self.shared.collisions),
                     _ => {}
                 }
-                Ok(summary.ending)
+                (Ok(summary.ending), summary.steps, summary.duration_s)
             }
             Err(e) => {
                 tracing::error!(%e, "episode failed");
-                Err(e.to_string())
+                let steps = self.shared.status().step;
+                (Err(e.to_string()), steps, started.elapsed().as_secs_f64())
             }
         };
+        // The status first: a client that sees the end on the feed and
+        // then asks for the status finds the episode over, and a failed
+        // episode ends on the feed too, so that no one waits on it for ever.
         self.shared.episode_done(&ending);
-        self.shared.status().last_ending = Some(ending.unwrap_or_else(Ending::Fault));
+        let _ = self.shared.telemetry.send(Telemetry::End {
+            episode,
+            policy_version: version,
+            steps,
+            time_s,
+            ending: ending.unwrap_or_else(Ending::Fault),
+        });
     }
 }
 
@@ -347,15 +355,4 @@ fn report_step(shared: &DaemonState, episode: u64, policy_version: u64, log: &St
         stage_mm: log.stage_mm,
         latency_ms: log.latency_ms,
     });
-}
-
-/// The telemetry message that closes an episode.
-fn final_telemetry(episode: u64, policy_version: u64, summary: &EpisodeSummary) -> Telemetry {
-    Telemetry::End {
-        episode,
-        policy_version,
-        steps: summary.steps,
-        time_s: summary.duration_s,
-        ending: summary.ending.clone(),
-    }
 }

@@ -199,10 +199,13 @@ impl DaemonState {
         self.status().activity = Activity::Idle;
     }
 
-    /// An episode ended with `ending` (`Err`: it could not run to an end).
+    /// An episode ended with `ending` (`Err`: it could not run to an end):
+    /// the agent is idle and says how the episode ended, in one change, so
+    /// that no status shows the one without the other.
     pub fn episode_done(&self, ending: &Result<Ending, String>) {
         let mut status = self.status();
         status.activity = Activity::Idle;
+        status.last_ending = Some(ending.clone().unwrap_or_else(Ending::Fault));
         let latch = match ending {
             Ok(Ending::EmergencyStopped(reason)) => {
                 // The watchdog's stop, or the operator's already latched.
