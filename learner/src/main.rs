@@ -108,7 +108,10 @@ fn with_allocator_options() -> Option<String> {
     if let Some(arg0) = args.next() {
         command.arg0(arg0);
     }
+    // A SIGHUP sent while the process replaces itself waits for `run`.
+    tweezer_process::hold_hangups();
     let error = command.args(args).env(OPTION, PURGE_DELAY_MS).exec();
+    tweezer_process::release_hangups();
     Some(format!("cannot re-execute with {OPTION} set: {error}"))
 }
 
@@ -121,6 +124,8 @@ fn run() -> anyhow::Result<()> {
     let cli = Cli::parse();
     if matches!(cli.command, Command::Serve { .. }) {
         tweezer_process::catch_early_hangups();
+    } else {
+        tweezer_process::release_hangups();
     }
     init_logging(cli.log_json);
     if let Some(why) = unset {

@@ -2,6 +2,7 @@
 //! how it reports an error, the signals that stop it, and argument
 //! parsers.
 
+use nix::sys::signal::{SigSet, Signal};
 use std::process::ExitCode;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex};
@@ -139,6 +140,34 @@ pub fn catch_early_hangups() {
             eprintln!("cannot catch SIGHUP early ({e}): one sent during start-up ends the process")
         }
     }
+    release_hangups();
+}
+
+/// Holds SIGHUP pending from now on, across an `exec` that replaces this
+/// process with itself (the learner does, to set an allocator option):
+/// an exec resets signal handlers but keeps the signal mask, so a SIGHUP
+/// sent in between waits for the new image's [`catch_early_hangups`]
+/// instead of ending the process. The new image calls that, or
+/// [`release_hangups`], before it starts a thread (threads inherit the
+/// mask).
+pub fn hold_hangups() {
+    if let Err(e) = hangups().thread_block() {
+        eprintln!("cannot hold SIGHUP ({e}): one sent while the process restarts ends it");
+    }
+}
+
+/// Lets SIGHUP through again after [`hold_hangups`]; one held meanwhile
+/// arrives now. Where nothing was held, it changes nothing.
+pub fn release_hangups() {
+    if let Err(e) = hangups().thread_unblock() {
+        eprintln!("cannot let SIGHUP through ({e})");
+    }
+}
+
+fn hangups() -> SigSet {
+    let mut set = SigSet::empty();
+    set.add(Signal::SIGHUP);
+    set
 }
 
 /// Whether a SIGHUP came since [`catch_early_hangups`]; stops catching
@@ -171,7 +200,10 @@ pub fn parse_pair(text: &str) -> Result<[f64; 2], String> {
 
 #[cfg(test)]
 mod tests {
-    use super::{DEFAULT_FILTER, StopSignals, error_chain, parse_pair};
+    use super::{
+        DEFAULT_FILTER, Signal, StopSignals, catch_early_hangups, early_hangup_came, error_chain,
+        hold_hangups, parse_pair,
+    };
     use std::io::Write;
     use std::sync::{Arc, Mutex};
     use tracing_subscriber::EnvFilter;
@@ -189,6 +221,16 @@ mod tests {
         fn flush(&mut self) -> std::io::Result<()> {
             Ok(())
         }
+    }
+
+    #[test]
+    fn a_hangup_held_across_a_restart_reaches_the_early_catcher() {
+        hold_hangups();
+        // Held: the default action would end this test binary.
+        nix::sys::signal::raise(Signal::SIGHUP).unwrap();
+        catch_early_hangups();
+        assert!(early_hangup_came());
+        assert!(!early_hangup_came(), "caught once, then no longer");
     }
 
     #[test]
