@@ -227,6 +227,8 @@ if ! up_within 60; then
     say "Prometheus did not find the learner and both actors up: $(up_targets)"
     ls "$run/prometheus"
     tail -20 "$prom/prometheus.log"
+    cat "$work/job.out" >&2 || true
+    tail -20 "$work/slurmctld.log" >&2 || true
     exit 1
 fi
 say "Prometheus scrapes the learner and both actors through file_sd: all up"
