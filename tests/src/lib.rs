@@ -9,6 +9,7 @@ use std::process::{Child, Command, ExitStatus, Output, Stdio};
 use std::sync::OnceLock;
 use std::time::{Duration, Instant};
 use tweezer_proto::pb;
+use tweezer_proto::pb::hardware_agent_client::HardwareAgentClient;
 use tweezer_proto::pb::learner_client::LearnerClient;
 
 /// An `[env]` table without free spheres and with 20 x 16 images: cheap to
@@ -565,6 +566,40 @@ pub fn wait_for_learner(
             "never {what}; last status {last:?}"
         );
         std::thread::sleep(Duration::from_millis(100));
+    }
+}
+
+/// The hardware agent's state in `status`.
+pub fn agent_state(status: &pb::AgentStatus) -> pb::AgentState {
+    pb::AgentState::try_from(status.state).unwrap()
+}
+
+/// The hardware agent's status, now.
+pub async fn agent_status(
+    client: &mut HardwareAgentClient<tweezer_rpc::AuthChannel>,
+) -> pb::AgentStatus {
+    client
+        .get_status(pb::AgentStatusRequest {})
+        .await
+        .unwrap()
+        .into_inner()
+}
+
+/// Polls the hardware agent every 20 ms until its state is `want`;
+/// panics with the last status after `within`.
+pub async fn wait_for_agent_state(
+    client: &mut HardwareAgentClient<tweezer_rpc::AuthChannel>,
+    want: pb::AgentState,
+    within: Duration,
+) -> pb::AgentStatus {
+    let deadline = Instant::now() + within;
+    loop {
+        let status = agent_status(client).await;
+        if agent_state(&status) == want {
+            return status;
+        }
+        assert!(Instant::now() < deadline, "still {status:?}");
+        tokio::time::sleep(Duration::from_millis(20)).await;
     }
 }
 

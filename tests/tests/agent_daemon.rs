@@ -10,7 +10,9 @@ use tonic_health::pb::health_client::HealthClient;
 use tweezer_proto::pb;
 use tweezer_proto::pb::hardware_agent_client::HardwareAgentClient;
 use tweezer_rpc::AuthChannel;
-use tweezer_system_tests::{Running, connect, start_agent};
+use tweezer_system_tests::{
+    Running, agent_state, agent_status, connect, start_agent, wait_for_agent_state,
+};
 
 /// The daemon, killed if the test fails before stopping it, and its address.
 fn start(records: &std::path::Path) -> (Running, String) {
@@ -19,34 +21,6 @@ fn start(records: &std::path::Path) -> (Running, String) {
         None,
     );
     (Running::new(child), addr)
-}
-
-fn state(status: &pb::AgentStatus) -> pb::AgentState {
-    pb::AgentState::try_from(status.state).unwrap()
-}
-
-async fn current_status(client: &mut HardwareAgentClient<AuthChannel>) -> pb::AgentStatus {
-    client
-        .get_status(pb::AgentStatusRequest {})
-        .await
-        .unwrap()
-        .into_inner()
-}
-
-async fn wait_for(
-    client: &mut HardwareAgentClient<AuthChannel>,
-    want: pb::AgentState,
-    within: Duration,
-) -> pb::AgentStatus {
-    let deadline = Instant::now() + within;
-    loop {
-        let status = current_status(client).await;
-        if state(&status) == want {
-            return status;
-        }
-        assert!(Instant::now() < deadline, "still {status:?}");
-        tokio::time::sleep(Duration::from_millis(20)).await;
-    }
 }
 
 /// The services gRPC reflection lists.
@@ -86,7 +60,8 @@ async fn the_daemon_runs_episodes_stops_them_and_refuses_what_it_must() {
     let (daemon, addr) = start(dir.path());
     let mut client = HardwareAgentClient::new(connect(&addr, "control").await);
 
-    let status = wait_for(&mut client, pb::AgentState::Idle, Duration::from_secs(5)).await;
+    let status =
+        wait_for_agent_state(&mut client, pb::AgentState::Idle, Duration::from_secs(5)).await;
     assert_eq!(status.policy, "greedy baseline");
 
     // The standard services: health and reflection.
@@ -165,7 +140,7 @@ async fn the_daemon_runs_episodes_stops_them_and_refuses_what_it_must() {
         .unwrap()
         .into_inner();
     let status = client.start_episode(seeded(1)).await.unwrap().into_inner();
-    assert_eq!(state(&status), pb::AgentState::Running);
+    assert_eq!(agent_state(&status), pb::AgentState::Running);
     let err = client.start_episode(seeded(1)).await.unwrap_err();
     assert_eq!(
         err.code(),
@@ -187,8 +162,8 @@ async fn the_daemon_runs_episodes_stops_them_and_refuses_what_it_must() {
     assert_eq!(outcome, pb::Outcome::Collision);
     assert!(saw_virtual, "the wall was in the observations");
     // Once the feed says the episode ended, the status says so too.
-    let status = current_status(&mut client).await;
-    assert_eq!(state(&status), pb::AgentState::Idle);
+    let status = agent_status(&mut client).await;
+    assert_eq!(agent_state(&status), pb::AgentState::Idle);
     assert_eq!(status.last_outcome, pb::Outcome::Collision as i32);
 
     // Without the wall, an emergency stop in mid-episode: the reply comes
@@ -211,10 +186,10 @@ async fn the_daemon_runs_episodes_stops_them_and_refuses_what_it_must() {
     // seconds; a second of slack leaves a loaded 2-core machine room.
     let latency = asked.elapsed();
     assert!(latency < Duration::from_secs(1), "{latency:?}");
-    assert_eq!(state(&status), pb::AgentState::EmergencyStopped);
+    assert_eq!(agent_state(&status), pb::AgentState::EmergencyStopped);
     tokio::time::sleep(Duration::from_millis(300)).await;
-    let stopped = current_status(&mut client).await;
-    assert_eq!(state(&stopped), pb::AgentState::EmergencyStopped);
+    let stopped = agent_status(&mut client).await;
+    assert_eq!(agent_state(&stopped), pb::AgentState::EmergencyStopped);
     assert_eq!(stopped.last_outcome, pb::Outcome::Stopped as i32);
     assert_eq!(stopped.message, "test");
     let err = client.start_episode(seeded(3)).await.unwrap_err();
@@ -229,7 +204,7 @@ async fn the_daemon_runs_episodes_stops_them_and_refuses_what_it_must() {
         .await
         .unwrap()
         .into_inner();
-    assert_eq!(state(&status), pb::AgentState::Idle);
+    assert_eq!(agent_state(&status), pb::AgentState::Idle);
 
     // SIGTERM ends the daemon cleanly, within 10 s.
     let asked = Instant::now();

@@ -10,7 +10,10 @@ use tweezer_gym::SplitMix64;
 use tweezer_proto::pb;
 use tweezer_proto::pb::hardware_agent_client::HardwareAgentClient;
 use tweezer_rpc::AuthChannel;
-use tweezer_system_tests::{AGENT_CONTROL, Running, connect, start_configured_agent, write};
+use tweezer_system_tests::{
+    AGENT_CONTROL, Running, agent_state, agent_status, connect, start_configured_agent,
+    wait_for_agent_state, write,
+};
 
 type Client = HardwareAgentClient<AuthChannel>;
 
@@ -28,30 +31,6 @@ fn start(dir: &std::path::Path, learner: &str) -> (Running, String) {
         None,
     );
     (Running::new(child), addr)
-}
-
-fn state(status: &pb::AgentStatus) -> pb::AgentState {
-    pb::AgentState::try_from(status.state).unwrap()
-}
-
-async fn status(client: &mut Client) -> pb::AgentStatus {
-    client
-        .get_status(pb::AgentStatusRequest {})
-        .await
-        .unwrap()
-        .into_inner()
-}
-
-async fn wait_for(client: &mut Client, want: pb::AgentState) -> pb::AgentStatus {
-    let deadline = Instant::now() + Duration::from_secs(10);
-    loop {
-        let status = status(client).await;
-        if state(&status) == want {
-            return status;
-        }
-        assert!(Instant::now() < deadline, "still {status:?}");
-        tokio::time::sleep(Duration::from_millis(20)).await;
-    }
 }
 
 fn from_learner() -> pb::LoadPolicyRequest {
@@ -91,14 +70,19 @@ async fn an_emergency_stop_during_a_load_from_a_silent_learner_stays_and_resets(
     let dir = tempfile::tempdir().unwrap();
     let (_daemon, addr) = start(dir.path(), &silent.local_addr().unwrap().to_string());
     let mut client = Client::new(connect(&addr, "control").await);
-    wait_for(&mut client, pb::AgentState::Idle).await;
+    wait_for_agent_state(&mut client, pb::AgentState::Idle, Duration::from_secs(10)).await;
 
     let started = Instant::now();
     let mut loader = client.clone();
     let load = tokio::spawn(async move { loader.load_policy(from_learner()).await });
-    wait_for(&mut client, pb::AgentState::Loading).await;
+    wait_for_agent_state(
+        &mut client,
+        pb::AgentState::Loading,
+        Duration::from_secs(10),
+    )
+    .await;
     let stopped = client.emergency_stop(estop()).await.unwrap().into_inner();
-    assert_eq!(state(&stopped), pb::AgentState::EmergencyStopped);
+    assert_eq!(agent_state(&stopped), pb::AgentState::EmergencyStopped);
 
     let refused = load.await.unwrap().unwrap_err();
     let waited = started.elapsed();
@@ -109,7 +93,7 @@ async fn an_emergency_stop_during_a_load_from_a_silent_learner_stays_and_resets(
     );
     // The load's end did not undo the stop.
     assert_eq!(
-        state(&status(&mut client).await),
+        agent_state(&agent_status(&mut client).await),
         pb::AgentState::EmergencyStopped
     );
     let err = client.start_episode(seeded(1)).await.unwrap_err();
@@ -122,7 +106,7 @@ async fn an_emergency_stop_during_a_load_from_a_silent_learner_stays_and_resets(
         .await
         .unwrap()
         .into_inner();
-    assert_eq!(state(&reset), pb::AgentState::Idle);
+    assert_eq!(agent_state(&reset), pb::AgentState::Idle);
     client.start_episode(seeded(1)).await.unwrap();
     client
         .stop_episode(pb::StopEpisodeRequest {})
@@ -136,7 +120,7 @@ async fn an_emergency_stop_during_a_load_from_a_silent_learner_stays_and_resets(
         .status()
         .unwrap();
     assert!(made.success());
-    wait_for(&mut client, pb::AgentState::Idle).await;
+    wait_for_agent_state(&mut client, pb::AgentState::Idle, Duration::from_secs(10)).await;
     let err = client
         .load_policy(pb::LoadPolicyRequest {
             source: Some(pb::load_policy_request::Source::File(
@@ -147,7 +131,10 @@ async fn an_emergency_stop_during_a_load_from_a_silent_learner_stays_and_resets(
         .await
         .unwrap_err();
     assert!(err.message().contains("not a regular file"), "{err:?}");
-    assert_eq!(state(&status(&mut client).await), pb::AgentState::Idle);
+    assert_eq!(
+        agent_state(&agent_status(&mut client).await),
+        pb::AgentState::Idle
+    );
 }
 
 /// One RPC of a random sequence.
@@ -180,7 +167,7 @@ async fn random_sequences_of_rpcs_never_lose_an_emergency_stop_and_always_reset(
     let dir = tempfile::tempdir().unwrap();
     let (_daemon, addr) = start(dir.path(), &silent.local_addr().unwrap().to_string());
     let mut client = Client::new(connect(&addr, "control").await);
-    wait_for(&mut client, pb::AgentState::Idle).await;
+    wait_for_agent_state(&mut client, pb::AgentState::Idle, Duration::from_secs(10)).await;
 
     let mut rng = SplitMix64::new(0x57a7e);
     let mut background = Vec::new();
@@ -212,7 +199,11 @@ async fn random_sequences_of_rpcs_never_lose_an_emergency_stop_and_always_reset(
             }
             Call::EmergencyStop => {
                 let s = client.emergency_stop(estop()).await.unwrap().into_inner();
-                assert_eq!(state(&s), pb::AgentState::EmergencyStopped, "{trace:?}");
+                assert_eq!(
+                    agent_state(&s),
+                    pb::AgentState::EmergencyStopped,
+                    "{trace:?}"
+                );
                 latched = true;
             }
             Call::Reset => {
@@ -251,9 +242,13 @@ async fn random_sequences_of_rpcs_never_lose_an_emergency_stop_and_always_reset(
                 }
             }
         }
-        let now = status(&mut client).await;
+        let now = agent_status(&mut client).await;
         if latched {
-            assert_eq!(state(&now), pb::AgentState::EmergencyStopped, "{trace:?}");
+            assert_eq!(
+                agent_state(&now),
+                pb::AgentState::EmergencyStopped,
+                "{trace:?}"
+            );
         }
         tokio::time::sleep(Duration::from_millis(rng.integer_inclusive(0, 150).into())).await;
     }
@@ -273,6 +268,9 @@ async fn random_sequences_of_rpcs_never_lose_an_emergency_stop_and_always_reset(
         assert!(Instant::now() < deadline, "{trace:?}: never reset");
         tokio::time::sleep(Duration::from_millis(50)).await;
     }
-    assert_eq!(state(&status(&mut client).await), pb::AgentState::Idle);
+    assert_eq!(
+        agent_state(&agent_status(&mut client).await),
+        pb::AgentState::Idle
+    );
     client.start_episode(seeded(99)).await.unwrap();
 }
