@@ -585,22 +585,39 @@ pub async fn agent_status(
         .into_inner()
 }
 
-/// Polls the hardware agent every 20 ms until its state is `want`;
-/// panics with the last status after `within`.
+/// Polls the hardware agent every 20 ms until its status satisfies `done`
+/// and returns that status; panics with the last one, saying that it
+/// never reached `what`, after `within`.
+pub async fn wait_for_agent(
+    client: &mut HardwareAgentClient<tweezer_rpc::AuthChannel>,
+    what: &str,
+    within: Duration,
+    done: impl Fn(&pb::AgentStatus) -> bool,
+) -> pb::AgentStatus {
+    let deadline = Instant::now() + within;
+    loop {
+        let status = agent_status(client).await;
+        if done(&status) {
+            return status;
+        }
+        assert!(
+            Instant::now() < deadline,
+            "the agent never reached {what} within {within:?}: {status:?}"
+        );
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+}
+
+/// [`wait_for_agent`] until the agent's state is `want`.
 pub async fn wait_for_agent_state(
     client: &mut HardwareAgentClient<tweezer_rpc::AuthChannel>,
     want: pb::AgentState,
     within: Duration,
 ) -> pb::AgentStatus {
-    let deadline = Instant::now() + within;
-    loop {
-        let status = agent_status(client).await;
-        if agent_state(&status) == want {
-            return status;
-        }
-        assert!(Instant::now() < deadline, "still {status:?}");
-        tokio::time::sleep(Duration::from_millis(20)).await;
-    }
+    wait_for_agent(client, &format!("{want:?}"), within, |status| {
+        agent_state(status) == want
+    })
+    .await
 }
 
 /// A one-command train file in [`TINY_ENV`]: a learner that learns from

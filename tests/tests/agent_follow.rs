@@ -11,8 +11,9 @@ use std::time::{Duration, Instant};
 use tweezer_proto::pb;
 use tweezer_proto::pb::hardware_agent_client::HardwareAgentClient;
 use tweezer_system_tests::{
-    AGENT_CONTROL, Running, binary, connect, credentials, free_port, learner_status, output_of,
-    run, start_configured_agent, start_learner, stderr_of_failure, write,
+    AGENT_CONTROL, Running, agent_state, binary, connect, credentials, free_port, learner_status,
+    output_of, run, start_configured_agent, start_learner, stderr_of_failure, wait_for_agent,
+    write,
 };
 
 /// A small set network that publishes often.
@@ -122,23 +123,16 @@ async fn the_agent_follows_a_live_learner_between_episodes() {
             })
             .await
             .unwrap();
-        let ended = loop {
-            let status = client
-                .get_status(pb::AgentStatusRequest {})
-                .await
-                .unwrap()
-                .into_inner();
-            if status.episode as usize > driven.len()
-                && status.state != pb::AgentState::Running as i32
-            {
-                break status;
-            }
-            assert!(
-                Instant::now() < deadline,
-                "the episode never ended: {status:?}"
-            );
-            tokio::time::sleep(Duration::from_millis(20)).await;
-        };
+        let ended = wait_for_agent(
+            &mut client,
+            "the end of a new episode",
+            deadline.saturating_duration_since(Instant::now()),
+            |status| {
+                status.episode as usize > driven.len()
+                    && agent_state(status) != pb::AgentState::Running
+            },
+        )
+        .await;
         assert_eq!(ended.state, pb::AgentState::Idle as i32, "{ended:?}");
         assert_eq!(ended.following, "latest");
         driven.push((ended.episode, ended.policy_version));

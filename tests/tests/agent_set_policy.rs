@@ -3,11 +3,12 @@
 //! CNN's, no rendering on either side, a field of view wider than the one
 //! it was trained on, and an episode on the twin to its end.
 
-use std::time::{Duration, Instant};
+use std::time::Duration;
 use tweezer_proto::pb;
 use tweezer_proto::pb::hardware_agent_client::HardwareAgentClient;
 use tweezer_system_tests::{
-    AGENT_CONTROL, Running, connect, learner_status, start_configured_agent, start_learner, write,
+    AGENT_CONTROL, Running, agent_state, connect, learner_status, start_configured_agent,
+    start_learner, wait_for_agent, write,
 };
 
 /// A learner of the set network on SPEC's environment.
@@ -76,22 +77,13 @@ async fn the_agent_drives_the_twin_with_a_set_snapshot_from_a_live_learner() {
         })
         .await
         .unwrap();
-    let deadline = Instant::now() + Duration::from_secs(60);
-    let ended = loop {
-        let status = client
-            .get_status(pb::AgentStatusRequest {})
-            .await
-            .unwrap()
-            .into_inner();
-        if status.episode >= 1 && status.state == pb::AgentState::Idle as i32 {
-            break status;
-        }
-        assert!(
-            Instant::now() < deadline,
-            "the episode never ended: {status:?}"
-        );
-        tokio::time::sleep(Duration::from_millis(50)).await;
-    };
+    let ended = wait_for_agent(
+        &mut client,
+        "idle after episode 1",
+        Duration::from_secs(60),
+        |status| status.episode >= 1 && agent_state(status) == pb::AgentState::Idle,
+    )
+    .await;
     assert!(ended.step > 0, "{ended:?}");
     assert_eq!(ended.policy_version, published.latest_snapshot);
 
