@@ -507,15 +507,24 @@ fn a_service_whose_certificate_is_not_from_its_ca_does_not_start() {
 
 /// Whether process `pid` holds or catches SIGHUP (`/proc/PID/status`):
 /// before it does, nothing the process could do would save it from one.
-fn takes_hangups(pid: u32) -> bool {
-    let status = std::fs::read_to_string(format!("/proc/{pid}/status")).unwrap_or_default();
-    status.lines().any(|line| {
-        let mask = |name| line.strip_prefix(name).map(str::trim);
-        mask("SigBlk:")
-            .or(mask("SigCgt:"))
-            .and_then(|hex| u64::from_str_radix(hex, 16).ok())
-            .is_some_and(|bits| bits & 1 != 0)
-    })
+/// `None` once it has exited (a zombie, or gone).
+fn takes_hangups(pid: u32) -> Option<bool> {
+    let status = std::fs::read_to_string(format!("/proc/{pid}/status")).ok()?;
+    let field = |name: &str| {
+        status
+            .lines()
+            .find_map(|line| line.strip_prefix(name).map(str::trim))
+    };
+    if field("State:").is_none_or(|state| state.starts_with('Z')) {
+        return None;
+    }
+    let mask = |name| field(name).and_then(|hex| u64::from_str_radix(hex, 16).ok());
+    Some(
+        [mask("SigBlk:"), mask("SigCgt:")]
+            .into_iter()
+            .flatten()
+            .any(|bits| bits & 1 != 0),
+    )
 }
 
 /// Starts `bin` with `args`, sends it SIGHUP `after` its first
@@ -526,11 +535,15 @@ fn survives_an_early_sighup(bin: &str, args: &[&str], after: Duration) {
     command.args(args);
     let (child, addr) = tweezer_system_tests::spawn_service_then(bin, command, None, |child| {
         let deadline = std::time::Instant::now() + Duration::from_secs(30);
-        while !takes_hangups(child.id()) {
-            assert!(
-                std::time::Instant::now() < deadline,
-                "{bin} neither held nor caught SIGHUP within 30 s"
-            );
+        loop {
+            match takes_hangups(child.id()) {
+                Some(true) => break,
+                Some(false) => assert!(
+                    std::time::Instant::now() < deadline,
+                    "{bin} neither held nor caught SIGHUP within 30 s"
+                ),
+                None => panic!("{bin} exited before it held or caught SIGHUP"),
+            }
             std::thread::sleep(Duration::from_micros(200));
         }
         std::thread::sleep(after);
