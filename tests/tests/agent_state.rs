@@ -17,6 +17,9 @@ use tweezer_system_tests::{
 
 type Client = HardwareAgentClient<AuthChannel>;
 
+/// How long the daemon may take to reach a state it was asked for.
+const SETTLE: Duration = Duration::from_secs(10);
+
 /// A daemon on the twin whose `[policy]` learner is `learner`, fetched
 /// within 2 s (killed when the test ends), and its address.
 fn start(dir: &std::path::Path, learner: &str) -> (Running, String) {
@@ -70,17 +73,12 @@ async fn an_emergency_stop_during_a_load_from_a_silent_learner_stays_and_resets(
     let dir = tempfile::tempdir().unwrap();
     let (_daemon, addr) = start(dir.path(), &silent.local_addr().unwrap().to_string());
     let mut client = Client::new(connect(&addr, "control").await);
-    wait_for_agent_state(&mut client, pb::AgentState::Idle, Duration::from_secs(10)).await;
+    wait_for_agent_state(&mut client, pb::AgentState::Idle, SETTLE).await;
 
     let started = Instant::now();
     let mut loader = client.clone();
     let load = tokio::spawn(async move { loader.load_policy(from_learner()).await });
-    wait_for_agent_state(
-        &mut client,
-        pb::AgentState::Loading,
-        Duration::from_secs(10),
-    )
-    .await;
+    wait_for_agent_state(&mut client, pb::AgentState::Loading, SETTLE).await;
     let stopped = client.emergency_stop(estop()).await.unwrap().into_inner();
     assert_eq!(agent_state(&stopped), pb::AgentState::EmergencyStopped);
 
@@ -120,7 +118,7 @@ async fn an_emergency_stop_during_a_load_from_a_silent_learner_stays_and_resets(
         .status()
         .unwrap();
     assert!(made.success());
-    wait_for_agent_state(&mut client, pb::AgentState::Idle, Duration::from_secs(10)).await;
+    wait_for_agent_state(&mut client, pb::AgentState::Idle, SETTLE).await;
     let err = client
         .load_policy(pb::LoadPolicyRequest {
             source: Some(pb::load_policy_request::Source::File(
@@ -167,7 +165,7 @@ async fn random_sequences_of_rpcs_never_lose_an_emergency_stop_and_always_reset(
     let dir = tempfile::tempdir().unwrap();
     let (_daemon, addr) = start(dir.path(), &silent.local_addr().unwrap().to_string());
     let mut client = Client::new(connect(&addr, "control").await);
-    wait_for_agent_state(&mut client, pb::AgentState::Idle, Duration::from_secs(10)).await;
+    wait_for_agent_state(&mut client, pb::AgentState::Idle, SETTLE).await;
 
     let mut rng = SplitMix64::new(0x57a7e);
     let mut background = Vec::new();
