@@ -17,7 +17,6 @@ use crate::persistence::run_log::RunLog;
 use crate::persistence::snapshots::Snapshots;
 use crate::replay::Replay;
 use crate::state::LearnerState;
-use crate::training::td3::Guide;
 use crate::training::trainer::training;
 use anyhow::{Context, bail};
 use std::sync::Arc;
@@ -209,7 +208,7 @@ fn shared_state(
         .with_snapshots(snapshots)
         .with_run_log(run_log);
     // The planner labels what the actor imitates.
-    let shared = if config.td3.imitation > 0.0 && config.td3.guide == Guide::Planner {
+    let shared = if config.td3.imitation > 0.0 {
         shared.with_guide(Planner::for_config(&file.env))
     } else {
         shared

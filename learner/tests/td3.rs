@@ -7,16 +7,11 @@ use burn::module::{Module, ModuleVisitor, Param};
 use burn::nn::{Linear, LinearConfig};
 use burn::tensor::{Bytes, Device, Distribution, Tensor, TensorData};
 use tweezer_gym::{EnvConfig, ImageConfig, Renderer, SplitMix64};
-use tweezer_learner::replay::SampledTransitions;
-use tweezer_learner::training::check_guide::{CHECKED_ROWS, label_with_check};
 use tweezer_learner::training::module_updates::soft_update;
 use tweezer_learner::training::td3::{
-    Guide, Minibatch, Td3, Td3Config, smoothed_target_action, td_target,
+    Minibatch, Td3, Td3Config, smoothed_target_action, td_target,
 };
-use tweezer_nets::{
-    ActionJoin, Frame, Networks, PaperNetworks, Scene, SetBatch, SetNetworks, SetShape,
-    SphereInputs, critic_search,
-};
+use tweezer_nets::{Networks, PaperNetworks, Scene, SetBatch, SetNetworks, SetShape};
 
 fn values<const D: usize>(t: Tensor<D>) -> Vec<f32> {
     t.into_data().try_to_vec::<f32>().unwrap()
@@ -487,117 +482,6 @@ fn the_actor_imitates_the_guide_where_there_is_one() {
         guided < 0.25 * before && guided < 0.25 * unguided,
         "squared miss from the guide: {before} before, {guided} guided, {unguided} unguided"
     );
-}
-
-/// With the check as the guide, each of the first [`CHECKED_ROWS`] rows is
-/// labelled with the candidate whose smaller critic value is highest,
-/// where that beats the actor's own action by the margin, and unlabelled
-/// where none does; the rows after them are never labelled.
-#[test]
-fn the_check_labels_the_first_rows_with_the_candidate_its_critics_prefer() {
-    let device = Device::flex().autodiff();
-    let shape = SetShape {
-        inputs: SphereInputs::Motion,
-        action_join: ActionJoin::Approach,
-        frame: Frame::Goal,
-        ..SetShape::new([1280, 1024])
-    };
-    let networks = SetNetworks::new(shape, [1280, 1024]);
-    // Fresh critics' values are small: at this scale the margin is 0.005,
-    // so some rows are labelled and some are not.
-    let config = Td3Config {
-        reward_scale: 1e-4,
-        imitation: 1.0,
-        guide: Guide::Check,
-        ..Td3Config::default()
-    };
-    let td3 = Td3::new(config, networks.clone(), &device).unwrap();
-    let n = CHECKED_ROWS + 8;
-    let mut sampled = random_transitions(n);
-    label_with_check(&td3, &mut sampled, &device);
-    assert!(
-        sampled.guides[2 * CHECKED_ROWS..]
-            .iter()
-            .all(|g| g.is_nan())
-    );
-    let margin = critic_search::margin(Some(1e-4));
-    let (policy, critics) = (td3.policy(), td3.critics());
-    let mut labelled = 0;
-    for i in 0..CHECKED_ROWS {
-        let v = [sampled.vectors[2 * i], sampled.vectors[2 * i + 1]];
-        let scene = Scene::new(&sampled.centres[i], &sampled.displacements[i], v);
-        let k = critic_search::CANDIDATES;
-        let input = networks.input(std::iter::repeat_n(scene, k), &Device::flex());
-        let vector = Tensor::<2>::from_data(TensorData::new(v.repeat(k), [k, 2]), &Device::flex());
-        let one = networks.input(std::iter::once(scene), &Device::flex());
-        let own = values(SetNetworks::act(&policy, one, vector.clone().slice(0..1)));
-        let tried = critic_search::candidates([own[0], own[1]]);
-        let flat: Vec<f32> = tried.iter().flatten().copied().collect();
-        let action = Tensor::<2>::from_data(TensorData::new(flat, [k, 2]), &Device::flex());
-        let q =
-            |c: usize| values(critics[c].forward(input.clone(), vector.clone(), action.clone()));
-        let smaller: Vec<f32> = q(0).iter().zip(q(1)).map(|(a, b)| a.min(b)).collect();
-        let best = (0..k)
-            .max_by(|&a, &b| smaller[a].total_cmp(&smaller[b]))
-            .unwrap();
-        let guide = &sampled.guides[2 * i..2 * i + 2];
-        if smaller[best] > smaller[0] + margin {
-            labelled += 1;
-            let want = tried[best];
-            assert!(
-                (guide[0] - want[0]).abs() < 1e-6 && (guide[1] - want[1]).abs() < 1e-6,
-                "row {i}: labelled {guide:?}, the critics prefer {want:?}"
-            );
-        } else {
-            assert!(guide.iter().all(|g| g.is_nan()), "row {i}: {guide:?}");
-        }
-    }
-    assert!(
-        (1..CHECKED_ROWS).contains(&labelled),
-        "{labelled} of {CHECKED_ROWS} rows labelled"
-    );
-}
-
-/// `n` transitions of random scenes with motion, as the replay samples them.
-fn random_transitions(n: usize) -> SampledTransitions {
-    let mut rng = SplitMix64::new(7);
-    let mut scene = || {
-        let count = rng.integer_inclusive(0, 20) as usize;
-        let centres: Vec<[f32; 2]> = (0..count)
-            .map(|_| {
-                [
-                    rng.uniform(0.0, 1280.0) as f32,
-                    rng.uniform(0.0, 1024.0) as f32,
-                ]
-            })
-            .collect();
-        let moved = (0..count)
-            .map(|k| {
-                (k % 5 != 0).then(|| [rng.uniform(-2.0, 2.0) as f32, rng.uniform(-2.0, 2.0) as f32])
-            })
-            .collect();
-        (centres, moved)
-    };
-    let (centres, displacements) = (0..n).map(|_| scene()).unzip();
-    let (next_centres, next_displacements) = (0..n).map(|_| scene()).unzip();
-    let mut pairs = || {
-        (0..2 * n)
-            .map(|_| rng.uniform(-1.0, 1.0) as f32)
-            .collect::<Vec<_>>()
-    };
-    SampledTransitions {
-        centres,
-        displacements,
-        vectors: pairs(),
-        actions: pairs(),
-        rewards: vec![-1.0; n],
-        terminated: vec![0.0; n],
-        steps: vec![1.0; n],
-        next_centres,
-        next_displacements,
-        next_vectors: pairs(),
-        guides: vec![f32::NAN; 2 * n],
-    }
 }
 
 /// Every float a module holds, parameters and BatchNorm running statistics

@@ -8,7 +8,6 @@
 
 use crate::networks::Networks;
 use crate::spheres::Scene;
-use burn::module::Module;
 use burn::tensor::{Device, Tensor, TensorData};
 use tweezer_gym::Observation;
 
@@ -79,38 +78,18 @@ pub fn choose<N: Networks>(
     actions: &[[f32; 2]],
     device: &Device,
 ) -> Vec<[f32; 2]> {
-    let scenes: Vec<Scene> = observations.iter().map(|o| Scene::of(o)).collect();
-    let better = better_candidates(networks, critics, margin, &scenes, actions, device);
-    better
-        .into_iter()
-        .zip(actions)
-        .map(|(better, own)| better.unwrap_or(*own))
-        .collect()
-}
-
-/// [`choose`] on scenes, saying where the critics prefer a candidate:
-/// `Some` of it there, `None` where the actor's own action stands. The
-/// learner asks this of its batches, to pull the actor towards what its
-/// critics would choose (`td3.guide = "check"`).
-pub fn better_candidates<N: Networks>(
-    networks: &N,
-    critics: &[N::Critic; 2],
-    margin: f32,
-    scenes: &[Scene],
-    actions: &[[f32; 2]],
-    device: &Device,
-) -> Vec<Option<[f32; 2]>> {
-    let rows = scenes.len() * CANDIDATES;
+    let n = observations.len();
+    let rows = n * CANDIDATES;
     let tried: Vec<[[f32; 2]; CANDIDATES]> = actions.iter().map(|a| candidates(*a)).collect();
-    let repeated: Vec<Scene> = scenes
+    let repeated: Vec<&Observation> = observations
         .iter()
-        .flat_map(|s| std::iter::repeat_n(*s, CANDIDATES))
+        .flat_map(|o| std::iter::repeat_n(*o, CANDIDATES))
         .collect();
-    let input = N::valid(networks.input(repeated.iter().copied(), device));
-    let vectors: Vec<f32> = repeated.iter().flat_map(|s| s.vector).collect();
-    let vector = Tensor::<2>::from_data(TensorData::new(vectors, [rows, 2]), device).valid();
+    let input = networks.input(repeated.iter().map(|o| Scene::of(o)), device);
+    let vectors: Vec<f32> = repeated.iter().flat_map(|o| o.vector).collect();
+    let vector = Tensor::<2>::from_data(TensorData::new(vectors, [rows, 2]), device);
     let flat: Vec<f32> = tried.iter().flatten().flatten().copied().collect();
-    let action = Tensor::<2>::from_data(TensorData::new(flat, [rows, 2]), device).valid();
+    let action = Tensor::<2>::from_data(TensorData::new(flat, [rows, 2]), device);
     let values = critics.each_ref().map(|critic| {
         let features = N::features(critic, input.clone());
         N::value(critic, features, vector.clone(), action.clone())
@@ -123,12 +102,16 @@ pub fn better_candidates<N: Networks>(
         .enumerate()
         .map(|(i, tried)| {
             if !tried[0].iter().all(|v| v.is_finite()) {
-                return None;
+                return tried[0];
             }
             let value = |j: usize| values[0][i * CANDIDATES + j].min(values[1][i * CANDIDATES + j]);
             let best =
                 (1..CANDIDATES).fold(0, |best, j| if value(j) > value(best) { j } else { best });
-            (value(best) > value(0) + margin).then_some(tried[best])
+            if value(best) > value(0) + margin {
+                tried[best]
+            } else {
+                tried[0]
+            }
         })
         .collect()
 }

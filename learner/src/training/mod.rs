@@ -3,7 +3,6 @@
 //! rolls back a diverged update. Its CPU kernels, Adam included, are
 //! `tweezer_nets::cpu_kernels`.
 
-pub mod check_guide;
 pub mod divergence;
 #[cfg(any(feature = "cuda", feature = "wgpu"))]
 pub mod gpu_devices;

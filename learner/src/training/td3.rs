@@ -14,9 +14,8 @@
 //! - `action_l2`: a penalty on the mean squared action in the actor's loss;
 //! - `n_step`: the critics learn from n-step returns;
 //! - `imitation`: the actor also imitates a guide's action (the planner's,
-//!   labelled on arrival, or the critics' check's, found at the actor step:
-//!   [`Guide`]), as in TD3+BC (Fujimoto and Gu, 2021), with Q normalised
-//!   by its mean magnitude so that the weight is scale-free;
+//!   labelled on arrival), as in TD3+BC (Fujimoto and Gu, 2021), with Q
+//!   normalised by its mean magnitude so that the weight is scale-free;
 //! - the actor's loss reads Q1's encoder features detached: they do not
 //!   depend on π, so the backward pass skips Q1's encoder;
 //! - Adam's epsilon is PyTorch's 1e-8, not Burn's 1e-5.
@@ -180,11 +179,6 @@ impl<N: Networks> Td3<N> {
     /// (every `policy_delay`-th).
     pub fn actor_due(&self) -> bool {
         self.updates.is_multiple_of(self.config.policy_delay)
-    }
-
-    /// Whether the next [`Self::update`] will step the actor too.
-    pub fn actor_due_next(&self) -> bool {
-        (self.updates + 1).is_multiple_of(self.config.policy_delay)
     }
 
     /// The delayed policy step, then the soft target updates
@@ -418,32 +412,15 @@ pub struct Td3Config {
     /// critics are still wrong (0: the paper).
     pub action_l2: f64,
     /// Weight of the squared distance between the actor's action and the
-    /// guide's on the same observation (0: none, the paper; 0.4: TD3+BC's
-    /// α = 2.5). With it, Q in the actor's loss is divided by its mean
-    /// magnitude.
+    /// planner's on the same observation (0: none, the paper; 0.4: TD3+BC's
+    /// α = 2.5). With it, the learner labels every arriving observation
+    /// with the planner's action, and Q in the actor's loss is divided by
+    /// its mean magnitude.
     pub imitation: f64,
-    /// Whose action the actor imitates, with `imitation` above 0.
-    pub guide: Guide,
     /// Steps of reward summed before the critics bootstrap (1: the paper;
     /// n-step returns beyond). Exploration noise makes the sums slightly
     /// off-policy; short ones carry a reward back n times faster.
     pub n_step: u32,
-}
-
-/// Whose action the actor imitates (`imitation`).
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "snake_case")]
-pub enum Guide {
-    /// The planner's: the learner labels every arriving observation.
-    #[default]
-    Planner,
-    /// The candidate the critics' check prefers to the actor's own action,
-    /// where it prefers one: found before each actor step, with the
-    /// current actor and critics, on the first rows of its batch
-    /// (`crate::training::check_guide`). The check's choices between
-    /// detours then shape the actor, while the actors still explore
-    /// around the actor's own action.
-    Check,
 }
 
 impl Default for Td3Config {
@@ -460,7 +437,6 @@ impl Default for Td3Config {
             adam_epsilon: 1e-8,
             action_l2: 0.0,
             imitation: 0.0,
-            guide: Guide::Planner,
             n_step: 1,
         }
     }

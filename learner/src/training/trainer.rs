@@ -6,11 +6,10 @@ use crate::config::LearnerFile;
 use crate::ingest::limiter::limiter_state_name;
 use crate::persistence::checkpoint::{CheckpointHeader, Checkpoints, Loaded};
 use crate::state::LearnerState;
-use crate::training::check_guide::label_with_check;
 use crate::training::divergence::{DivergenceGuard, Verdict};
 use crate::training::minibatch::minibatch_tensors;
 use crate::training::mirror::mirror;
-use crate::training::td3::{Guide, Td3, UpdateStats};
+use crate::training::td3::{Td3, UpdateStats};
 use anyhow::{Context, bail};
 use burn::tensor::{Bytes, Device};
 use serde::Serialize;
@@ -241,10 +240,6 @@ impl<N: Networks> Trainer<N> {
         )?;
         if learner.mirror {
             mirror(&mut sampled, self.file.env.fov_px, &mut self.sampler);
-        }
-        let td3 = &learner.td3;
-        if td3.imitation > 0.0 && td3.guide == Guide::Check && self.td3.actor_due_next() {
-            label_with_check(&self.td3, &mut sampled, &self.device);
         }
         let batch = minibatch_tensors(&sampled, self.td3.networks(), &self.device);
         let stats = self.td3.update(batch);
