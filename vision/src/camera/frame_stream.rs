@@ -87,23 +87,48 @@ pub struct StreamFrame {
     pub captured_unix: Option<Duration>,
 }
 
+/// Why no frame could be read.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum PgmError {
+    /// The stream stopped partway through a frame, at the place named: its
+    /// writer died or closed it, which is not a fault of the format.
+    Cut(String),
+    /// The bytes are not a binary PGM frame; the text says why.
+    Malformed(String),
+}
+
+impl std::fmt::Display for PgmError {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            PgmError::Cut(place) => write!(f, "the stream ended {place}"),
+            PgmError::Malformed(why) => f.write_str(why),
+        }
+    }
+}
+
 /// Reads the next frame; `Ok(None)` when the stream ends between frames.
-pub fn read_pgm(reader: &mut impl BufRead) -> Result<Option<StreamFrame>, String> {
+pub fn read_pgm(reader: &mut impl BufRead) -> Result<Option<StreamFrame>, PgmError> {
+    let malformed = PgmError::Malformed;
     let mut header = Header::default();
     let mut fields = Vec::with_capacity(4);
     let mut token = Vec::new();
     let mut comment: Option<Vec<u8>> = None;
     while fields.len() < 4 {
         let mut byte = [0u8];
-        if reader.read(&mut byte).map_err(|e| e.to_string())? == 0 {
+        let read = reader
+            .read(&mut byte)
+            .map_err(|e| PgmError::Cut(format!("with a read error ({e})")))?;
+        if read == 0 {
             if header.bytes == 0 {
                 return Ok(None);
             }
-            return Err("the stream ended inside a frame's header".into());
+            return Err(PgmError::Cut("inside a frame's header".into()));
         }
         header.bytes += 1;
         if header.bytes > MAX_HEADER_BYTES {
-            return Err(format!("a header longer than {MAX_HEADER_BYTES} bytes"));
+            return Err(malformed(format!(
+                "a header longer than {MAX_HEADER_BYTES} bytes"
+            )));
         }
         let b = byte[0];
         if let Some(text) = comment.as_mut() {
@@ -127,20 +152,20 @@ pub fn read_pgm(reader: &mut impl BufRead) -> Result<Option<StreamFrame>, String
         token.push(b);
     }
     if fields[0] != b"P5" {
-        return Err(format!(
+        return Err(malformed(format!(
             "a frame must start with P5 (binary PGM), not {:?}",
             String::from_utf8_lossy(&fields[0])
-        ));
+        )));
     }
-    let number = |k: usize, name: &str| -> Result<usize, String> {
+    let number = |k: usize, name: &str| -> Result<usize, PgmError> {
         std::str::from_utf8(&fields[k])
             .ok()
             .and_then(|s| s.parse().ok())
             .ok_or_else(|| {
-                format!(
+                malformed(format!(
                     "the {name} {:?} is not a number",
                     String::from_utf8_lossy(&fields[k])
-                )
+                ))
             })
     };
     let (width, height, max_value) = (
@@ -149,18 +174,20 @@ pub fn read_pgm(reader: &mut impl BufRead) -> Result<Option<StreamFrame>, String
         number(3, "largest value")?,
     );
     if width == 0 || height == 0 || width.saturating_mul(height) > MAX_PIXELS {
-        return Err(format!(
+        return Err(malformed(format!(
             "a {width} x {height} px frame (at most {MAX_PIXELS} px)"
-        ));
+        )));
     }
     if !(1..=65535).contains(&max_value) {
-        return Err(format!("the largest value {max_value} is not in 1..=65535"));
+        return Err(malformed(format!(
+            "the largest value {max_value} is not in 1..=65535"
+        )));
     }
     let wide = max_value > 255;
     let mut raster = vec![0u8; width * height * if wide { 2 } else { 1 }];
     reader
         .read_exact(&mut raster)
-        .map_err(|e| format!("the stream ended inside a {width} x {height} px frame: {e}"))?;
+        .map_err(|e| PgmError::Cut(format!("inside a {width} x {height} px frame ({e})")))?;
     let pixels: Vec<u16> = if wide {
         raster
             .chunks_exact(2)
@@ -170,7 +197,7 @@ pub fn read_pgm(reader: &mut impl BufRead) -> Result<Option<StreamFrame>, String
         raster.into_iter().map(u16::from).collect()
     };
     let frame = GrayFrame::new(width, height, max_value as u16, pixels)
-        .ok_or_else(|| format!("a pixel exceeds the largest value {max_value}"))?;
+        .ok_or_else(|| malformed(format!("a pixel exceeds the largest value {max_value}")))?;
     Ok(Some(StreamFrame {
         frame,
         captured_unix: header.captured,
@@ -243,7 +270,11 @@ impl Mailbox {
             match read_pgm(&mut input) {
                 Ok(Some(frame)) => self.deliver(frame),
                 Ok(None) => return self.end(format!("{source} closed its stream")),
-                Err(e) => {
+                Err(PgmError::Cut(place)) => {
+                    counters.incomplete();
+                    return self.end(format!("{source} closed its stream {place}"));
+                }
+                Err(e @ PgmError::Malformed(_)) => {
                     counters.incomplete();
                     return self.end(format!("{source} wrote a malformed frame: {e}"));
                 }
@@ -592,9 +623,20 @@ mod tests {
             (pgm("P5\n1 1", &[]), "inside a frame's header"),
             (vec![b'#'; 5000], "longer than"),
         ] {
-            let error = read_pgm(&mut bytes.as_slice()).unwrap_err();
+            let error = read_pgm(&mut bytes.as_slice()).unwrap_err().to_string();
             assert!(error.contains(says), "{error} should say {says}");
         }
+    }
+
+    #[test]
+    fn a_stream_cut_inside_a_frame_is_not_called_malformed() {
+        for bytes in [pgm("P5\n2 2\n255\n", &[0, 0]), pgm("P5\n1 1", &[])] {
+            let error = read_pgm(&mut bytes.as_slice()).unwrap_err();
+            assert!(matches!(error, PgmError::Cut(_)), "{error:?}");
+        }
+        let garbage = pgm("P2\n1 1\n255\n", &[0]);
+        let error = read_pgm(&mut garbage.as_slice()).unwrap_err();
+        assert!(matches!(error, PgmError::Malformed(_)), "{error:?}");
     }
 
     #[test]
