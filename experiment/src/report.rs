@@ -112,12 +112,11 @@ impl Run {
         Ok(std::iter::once(best).chain(versions).collect())
     }
 
-    /// The policy to report: with `validation` seeds, the candidate whose
-    /// actor alone has the highest success rate (then return) on them
-    /// (checking by the critics costs 64 critic passes per step, too many
-    /// for every candidate), with its critics' check where that does better
-    /// on them too (young critics steer worse than their actor); else
-    /// `best`, as it is.
+    /// The policy to report: with `validation` seeds, the candidate and
+    /// the way of acting (its actor alone, or checked by its critics where
+    /// it has them) with the highest success rate (then return) on them,
+    /// since that way is what ships, and a snapshot's rank alone is a poor
+    /// guide to its rank checked; else `best`, as it is.
     fn choose(
         &self,
         validation: Option<&[u64]>,
@@ -138,7 +137,7 @@ impl Run {
                 version: info.version,
             }));
         };
-        let mut chosen: Option<(Chosen, EvalSummary)> = None;
+        let mut chosen: Option<Validated> = None;
         let mut seen = Vec::new();
         for path in &candidates {
             let (policy, info) = NetworkPolicy::from_file(path, &self.env, device)?;
@@ -146,47 +145,114 @@ impl Run {
                 continue;
             }
             seen.push(info.version);
-            let mut policy = policy.actor_alone();
-            let summary = EvalSummary::of(&evaluate(&self.env, &mut policy, validation, batch)?);
-            tracing::info!(run = %self.dir.display(), version = info.version, success = summary.success_rate, "validated");
-            if chosen.as_ref().is_none_or(|(_, b)| better(&summary, b)) {
-                let candidate = Chosen {
-                    path: path.clone(),
-                    how: String::new(),
-                    dropped_check: false,
-                    policy,
-                    version: info.version,
-                };
-                chosen = Some((candidate, summary));
+            let validated = Validated::of(
+                path,
+                policy,
+                info.version,
+                &self.env,
+                validation,
+                batch,
+                device,
+            )?;
+            tracing::info!(
+                run = %self.dir.display(),
+                version = info.version,
+                alone = validated.alone.success_rate,
+                checked = validated.checked.as_ref().map(|c| c.success_rate),
+                "validated"
+            );
+            if chosen
+                .as_ref()
+                .is_none_or(|b| better(validated.score(), b.score()))
+            {
+                chosen = Some(validated);
             }
         }
+        let Some(Validated {
+            chosen,
+            alone,
+            checked,
+        }) = chosen
+        else {
+            return Ok(None);
+        };
         let mut how = format!(
             "best of {} on validation seeds {}",
             seen.len(),
             describe_seeds(validation)
         );
-        let Some((chosen, alone)) = chosen else {
-            return Ok(None);
-        };
-        let (mut policy, _) = NetworkPolicy::from_file(&chosen.path, &self.env, device)?;
-        if !policy.has_critics() {
-            return Ok(Some(Chosen { how, ..chosen }));
+        if let Some(checked) = checked {
+            how += &format!(
+                ", critics' check {} there ({:.3} against {:.3} alone)",
+                if chosen.dropped_check {
+                    "dropped"
+                } else {
+                    "kept"
+                },
+                checked.success_rate,
+                alone.success_rate
+            );
         }
-        let checked = EvalSummary::of(&evaluate(&self.env, &mut policy, validation, batch)?);
-        let keep = better(&checked, &alone);
-        how += &format!(
-            ", critics' check {} there ({:.3} against {:.3} alone)",
-            if keep { "kept" } else { "dropped" },
-            checked.success_rate,
-            alone.success_rate
-        );
-        let policy = if keep { policy } else { policy.actor_alone() };
-        Ok(Some(Chosen {
-            how,
-            dropped_check: !keep,
-            policy,
-            ..chosen
-        }))
+        Ok(Some(Chosen { how, ..chosen }))
+    }
+}
+
+/// A candidate snapshot in its better way of acting, with its figures on
+/// the validation seeds both ways.
+struct Validated {
+    chosen: Chosen,
+    alone: EvalSummary,
+    /// Checked by its critics; none for a snapshot without them.
+    checked: Option<EvalSummary>,
+}
+
+impl Validated {
+    /// Evaluates the snapshot at `path` on `validation`, alone and, where
+    /// it has critics, checked; the check is kept only where it does better.
+    fn of(
+        path: &Path,
+        policy: NetworkPolicy,
+        version: u64,
+        env: &EnvConfig,
+        validation: &[u64],
+        batch: usize,
+        device: &Device,
+    ) -> anyhow::Result<Self> {
+        let mut summary = |p: &mut NetworkPolicy| {
+            evaluate(env, p, validation, batch).map(|e| EvalSummary::of(&e))
+        };
+        let (mut alone_policy, mut checked_policy) = if policy.has_critics() {
+            let (copy, _) = NetworkPolicy::from_file(path, env, device)?;
+            (copy.actor_alone(), Some(policy))
+        } else {
+            (policy, None)
+        };
+        let alone = summary(&mut alone_policy)?;
+        let checked = checked_policy.as_mut().map(&mut summary).transpose()?;
+        let keep = checked.as_ref().is_some_and(|c| better(c, &alone));
+        let policy = match checked_policy {
+            Some(checked) if keep => checked,
+            _ => alone_policy,
+        };
+        Ok(Self {
+            chosen: Chosen {
+                path: path.to_path_buf(),
+                how: String::new(),
+                dropped_check: checked.is_some() && !keep,
+                policy,
+                version,
+            },
+            alone,
+            checked,
+        })
+    }
+
+    /// Its figures in its better way of acting.
+    fn score(&self) -> &EvalSummary {
+        match &self.checked {
+            Some(checked) if !self.chosen.dropped_check => checked,
+            _ => &self.alone,
+        }
     }
 }
 
