@@ -270,13 +270,14 @@ impl Mailbox {
             match read_pgm(&mut input) {
                 Ok(Some(frame)) => self.deliver(frame),
                 Ok(None) => return self.end(format!("{source} closed its stream")),
-                Err(PgmError::Cut(place)) => {
+                Err(e) => {
                     counters.incomplete();
-                    return self.end(format!("{source} closed its stream {place}"));
-                }
-                Err(e @ PgmError::Malformed(_)) => {
-                    counters.incomplete();
-                    return self.end(format!("{source} wrote a malformed frame: {e}"));
+                    return self.end(match e {
+                        PgmError::Cut(place) => format!("{source} closed its stream {place}"),
+                        PgmError::Malformed(why) => {
+                            format!("{source} wrote a malformed frame: {why}")
+                        }
+                    });
                 }
             }
         }
