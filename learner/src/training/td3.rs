@@ -102,8 +102,6 @@ pub struct Td3<N: Networks> {
     critics: TwinCritic<N::Critic>,
     actor_target: N::Actor,
     critics_target: TwinCritic<N::Critic>,
-    actor_avg: N::Actor,
-    critics_avg: TwinCritic<N::Critic>,
     actor_optim: ModuleOptimizer,
     critic_optim: ModuleOptimizer,
     updates: u64,
@@ -126,8 +124,6 @@ impl<N: Networks> Clone for Td3<N> {
             critics: self.critics.valid().train(),
             actor_target: self.actor_target.valid(),
             critics_target: self.critics_target.valid(),
-            actor_avg: self.actor_avg.valid(),
-            critics_avg: self.critics_avg.valid(),
             actor_optim: self.actor_optim.clone(),
             critic_optim: self.critic_optim.clone(),
             updates: self.updates,
@@ -199,8 +195,6 @@ impl<N: Networks> Td3<N> {
             let tau = self.config.tau;
             soft_update_in_place(&mut self.actor_target, &self.actor, tau);
             soft_update_in_place(&mut self.critics_target, &self.critics, tau);
-            soft_update_in_place(&mut self.actor_avg, &self.actor, 0.001);
-            soft_update_in_place(&mut self.critics_avg, &self.critics, 0.001);
             actor_loss
         })
     }
@@ -320,8 +314,6 @@ impl<N: Networks> Td3<N> {
             networks,
             actor_target: actor.valid(),
             critics_target: critics.valid(),
-            actor_avg: actor.valid(),
-            critics_avg: critics.valid(),
             actor,
             critics,
             actor_optim: adam(&config),
@@ -336,26 +328,6 @@ impl<N: Networks> Td3<N> {
     /// them to check the policy's actions.
     pub fn critics(&self) -> [N::Critic; 2] {
         [self.critics.q1.valid(), self.critics.q2.valid()]
-    }
-
-    /// For comparing snapshots: the target networks (τ of the config), or,
-    /// with `slow`, an average of the online ones over about 1,000 actor
-    /// steps (τ 0.001).
-    pub fn averaged(&self, slow: bool) -> (N::Actor, [N::Critic; 2]) {
-        if slow {
-            (
-                self.actor_avg.valid(),
-                [self.critics_avg.q1.valid(), self.critics_avg.q2.valid()],
-            )
-        } else {
-            (
-                self.actor_target.valid(),
-                [
-                    self.critics_target.q1.valid(),
-                    self.critics_target.q2.valid(),
-                ],
-            )
-        }
     }
 
     /// The scale of the critics' values: rewards times it.

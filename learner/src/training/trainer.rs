@@ -444,18 +444,6 @@ impl<N: Networks> Trainer<N> {
             ),
             Architecture::Paper { .. } => encode(&self.td3.policy(), &info),
         };
-        // Beside each snapshot, the same version from the target and the
-        // averaged networks, never pruned, for comparing them afterwards.
-        if let Architecture::Set(_) = info.architecture {
-            let path = snapshots.path(info.version);
-            for (slow, name) in [(false, "snapshots-target"), (true, "snapshots-avg")] {
-                let (actor, critics) = self.td3.averaged(slow);
-                let b = encode_with_critics(&actor, &critics, self.td3.reward_scale(), &info);
-                let dir = path.parent().unwrap().parent().unwrap().join(name);
-                std::fs::create_dir_all(&dir)?;
-                std::fs::write(dir.join(path.file_name().unwrap()), b)?;
-            }
-        }
         let (published, best) = snapshots.publish(bytes, rolling_return)?;
         drop(snapshots);
         tracing::info!(
